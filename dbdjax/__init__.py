@@ -1,0 +1,17 @@
+"""dbdjax: differentiable rigid-body dynamics in JAX by Displacement Based Dynamics.
+
+    import dbdjax as dbd
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    link = b.add_body(pos=(0, 0, 1), mass=1.0, inertia=(0.1, 0.1, 0.1))
+    b.add_ball_joint(dbd.WORLD, link, anchor=(0, 0, 2))
+    model = b.finalize(dt=1 / 60)
+    state = dbd.step(model, dbd.init(model))
+"""
+
+from dbdjax import math
+from dbdjax.builder import ModelBuilder
+from dbdjax.model import WORLD, Model, State
+from dbdjax.pipeline import init, is_finite, rollout, step
+
+__all__ = ["WORLD", "Model", "ModelBuilder", "State", "init", "is_finite", "math", "rollout", "step"]
+__version__ = "0.1.0"

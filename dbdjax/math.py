@@ -1,0 +1,188 @@
+"""Quaternion and vector math shared by the whole engine.
+
+Quaternions are arrays (..., 4) ordered (w, x, y, z); vectors are (..., 3). Every function
+broadcasts over leading axes. Functions that divide by a norm or take an `arcsin`/`arctan2`
+that can meet a singular point go through the *double-where* trick, decided per element, so
+that the gradient is finite wherever the value is (JAX FAQ, "gradients contain NaN where using
+where"). The value at the singular point is the limit, not a scrubbed NaN.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+# Below this squared length a vector is treated as zero (its direction is undefined).
+_TINY_SQUARED = 1e-24
+
+
+def dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """Dot product over the last axis, (..., 3) x (..., 3) -> (...), written out so it fuses."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def cross(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """Cross product over the last axis, written out so it fuses well on every backend."""
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+
+
+def skew(v: jnp.ndarray) -> jnp.ndarray:
+    """Cross-product matrix [v]x (DBD eq. 9): skew(v) @ u == cross(v, u). (..., 3) -> (..., 3, 3)."""
+    zero = jnp.zeros_like(v[..., 0])
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack(
+        [
+            jnp.stack([zero, -z, y], axis=-1),
+            jnp.stack([z, zero, -x], axis=-1),
+            jnp.stack([-y, x, zero], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def safe_norm(v: jnp.ndarray, axis: int = -1, keepdims: bool = False) -> jnp.ndarray:
+    """Euclidean norm whose gradient at exactly zero is 0 instead of NaN."""
+    squared = jnp.sum(v * v, axis=axis, keepdims=keepdims)
+    is_zero = squared <= _TINY_SQUARED
+    safe_squared = jnp.where(is_zero, 1.0, squared)
+    return jnp.where(is_zero, 0.0, jnp.sqrt(safe_squared))
+
+
+def safe_normalize(v: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(unit vector, norm) of v (..., 3). A zero vector gives the zero vector and norm 0.
+
+    The zero direction is what every caller wants: a correction along an undefined direction is
+    no correction, and its gradient is 0 rather than NaN.
+    """
+    squared = dot(v, v)
+    is_zero = squared <= _TINY_SQUARED
+    safe_squared = jnp.where(is_zero, 1.0, squared)
+    norm = jnp.sqrt(safe_squared)
+    unit = jnp.where(is_zero[..., None], 0.0, v / norm[..., None])
+    return unit, jnp.where(is_zero, 0.0, norm)
+
+
+def safe_asin(x: jnp.ndarray) -> jnp.ndarray:
+    """arcsin clipped to [-1, 1] whose gradient at |x| = 1 is finite (it is the limit slope 0)."""
+    at_edge = jnp.abs(x) >= 1.0
+    safe_x = jnp.where(at_edge, 0.0, x)
+    return jnp.where(at_edge, jnp.sign(x) * (jnp.pi / 2), jnp.arcsin(safe_x))
+
+
+def safe_atan2(y: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
+    """arctan2 whose gradient at (0, 0) is 0 instead of NaN; the value there is 0."""
+    both_zero = (y * y + x * x) <= _TINY_SQUARED
+    safe_x = jnp.where(both_zero, 1.0, x)
+    return jnp.where(both_zero, 0.0, jnp.arctan2(y, safe_x))
+
+
+def quat_identity(shape: tuple[int, ...] = ()) -> jnp.ndarray:
+    """Identity quaternions of the given leading shape, (*shape, 4)."""
+    return jnp.zeros(shape + (4,)).at[..., 0].set(1.0)
+
+
+def quat_multiply(p: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
+    """Hamilton product p * q (rotate by q, then by p)."""
+    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q: jnp.ndarray) -> jnp.ndarray:
+    """Conjugate, the inverse of a unit quaternion."""
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
+    """Unit quaternion; a zero quaternion becomes the identity."""
+    squared = jnp.sum(q * q, axis=-1, keepdims=True)
+    is_zero = squared <= _TINY_SQUARED
+    safe = jnp.where(is_zero, 1.0, squared)
+    identity = quat_identity(q.shape[:-1]).astype(q.dtype)
+    return jnp.where(is_zero, identity, q / jnp.sqrt(safe))
+
+
+def quat_rotate(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
+    """Rotate vector v (..., 3) by unit quaternion q (..., 4): v' = q v q*."""
+    w = q[..., :1]
+    u = q[..., 1:]
+    t = 2.0 * cross(u, v)
+    return v + w * t + cross(u, t)
+
+
+def quat_rotate_inverse(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
+    """Rotate v by the inverse of unit quaternion q: v' = q* v q."""
+    return quat_rotate(quat_conjugate(q), v)
+
+
+def quat_to_matrix(q: jnp.ndarray) -> jnp.ndarray:
+    """Rotation matrix (..., 3, 3) of unit quaternion q; columns are the rotated basis vectors."""
+    eye = jnp.eye(3, dtype=q.dtype)
+    columns = quat_rotate(q[..., None, :], eye)  # (..., 3 basis vectors, 3)
+    return jnp.swapaxes(columns, -1, -2)
+
+
+def quat_exp(rotation_vector: jnp.ndarray) -> jnp.ndarray:
+    """Quaternion of a rotation vector theta * n (DBD: q(theta) = exp(i theta / 2)).
+
+    Uses sin(|v|/2)/|v| with its Taylor series near zero, so value and gradient are exact at 0.
+    """
+    angle_squared = dot(rotation_vector, rotation_vector)
+    small = angle_squared < 1e-8
+    safe_squared = jnp.where(small, 1.0, angle_squared)
+    angle = jnp.sqrt(safe_squared)
+    half_sinc = jnp.where(small, 0.5 - angle_squared / 48.0, jnp.sin(0.5 * angle) / angle)
+    half_cos = jnp.where(small, 1.0 - angle_squared / 8.0, jnp.cos(0.5 * angle))
+    return jnp.concatenate([half_cos[..., None], half_sinc[..., None] * rotation_vector], axis=-1)
+
+
+def quat_log(q: jnp.ndarray) -> jnp.ndarray:
+    """Rotation vector theta * n of unit quaternion q, with theta in [0, pi] (shortest arc)."""
+    q = jnp.where(q[..., :1] < 0.0, -q, q)  # q and -q are the same rotation
+    vector = q[..., 1:]
+    sin_half_squared = dot(vector, vector)
+    small = sin_half_squared < 1e-8
+    sin_half = jnp.sqrt(jnp.where(small, 1.0, sin_half_squared))
+    half_angle = jnp.arctan2(sin_half, q[..., 0])
+    # angle / sin(angle/2) -> 2 (1 + s^2/6) as s = sin(angle/2) -> 0 with cos(angle/2) ~ 1
+    scale = jnp.where(small, 2.0 + sin_half_squared / 3.0, 2.0 * half_angle / sin_half)
+    return scale[..., None] * vector
+
+
+def quat_twist_angle(q: jnp.ndarray, axis: jnp.ndarray) -> jnp.ndarray:
+    """Angle in [-pi, pi] of the twist of rotation q about unit `axis` (swing-twist split).
+
+    The twist is the part of q that rotates about `axis`; this is the hinge angle of SI
+    (104)-(106), extended to rotations whose axis is not exactly `axis`.
+    """
+    q = jnp.where(q[..., :1] < 0.0, -q, q)
+    along = dot(q[..., 1:], axis)
+    return 2.0 * safe_atan2(along, q[..., 0])
+
+
+def angle_between(a: jnp.ndarray, b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(angle in [0, pi], unit axis that turns a toward b) for unit vectors a, b (..., 3).
+
+    DBD (73) writes the angle as asin|a x b|; atan2(|a x b|, a . b) is the same below pi/2 and
+    stays right beyond it. At a == b the axis is the zero vector and the gradient finite.
+    """
+    axis, sine = safe_normalize(cross(a, b))
+    return safe_atan2(sine, dot(a, b)), axis
+
+
+def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
+    """matrix (..., 3, 3) times vector (..., 3), written out (no reduction op) so it fuses."""
+    return (
+        matrix[..., :, 0] * vector[..., None, 0]
+        + matrix[..., :, 1] * vector[..., None, 1]
+        + matrix[..., :, 2] * vector[..., None, 2]
+    )

@@ -1,0 +1,92 @@
+"""The public step: `init`, `step`, `rollout`, `is_finite`. Pure functions of (model, state).
+
+    step(model, state, control):
+      scan over substeps of h = dt / substeps:
+        X*, V* = integrator.predict(model, state, h)        DBD (21)-(24)
+        dX     = solvers.dbd.solve(model, X*, h)            Algorithm 1, (45)-(52)
+        state  = integrator.apply(X*, dX, h)                (36)-(39)
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from dbdjax import integrator
+from dbdjax.model import Model, State
+from dbdjax.solvers import dbd
+
+
+def init(model: Model) -> State:
+    """The state the model was built in (positions, orientations, velocities of `add_body`)."""
+    bodies = model.bodies
+    return State(
+        pos=bodies.initial_pos,
+        quat=bodies.initial_quat,
+        vel=bodies.initial_vel,
+        ang_vel=bodies.initial_ang_vel,
+    )
+
+
+def _check_control(model: Model, control) -> None:
+    expected = model.num_controls
+    if control is None:
+        return
+    shape = jnp.shape(control)
+    if shape != (expected,):
+        raise ValueError(f"control must have shape ({expected},) = (model.num_controls,), got {shape}")
+
+
+def substep(model: Model, state: State, h: float) -> State:
+    """One substep of h seconds: predict, solve, apply."""
+    predicted = integrator.predict(model, state, h)
+    displacement, rotation = dbd.solve(model, predicted, h)
+    return integrator.apply(predicted, displacement, rotation, h)
+
+
+def step(model: Model, state: State, control: jnp.ndarray | None = None) -> State:
+    """Advance `state` by model.dt seconds.
+
+    state: a `State` for one scene (vmap for batches). control: (model.num_controls,) or None.
+    Pure: jit, vmap and grad go through it (w.r.t. state, control and model float leaves).
+    """
+    _check_control(model, control)
+    options = model.options
+    h = options.dt / options.substeps
+    one_substep = lambda s: substep(model, s, h)  # noqa: E731
+    if options.checkpoint:
+        one_substep = jax.checkpoint(one_substep)
+    if options.substeps == 1:
+        return one_substep(state)
+    state, _ = jax.lax.scan(lambda s, _: (one_substep(s), None), state, None, length=options.substeps)
+    return state
+
+
+def rollout(
+    model: Model, state: State, controls: jnp.ndarray | None = None, steps: int | None = None
+) -> tuple[State, State]:
+    """Run `step` over controls (T, num_controls), or `steps` times with no control.
+
+    Returns (final state, trajectory): the trajectory is the State after each step, stacked on
+    a leading axis of length T.
+    """
+    if controls is None:
+        if steps is None:
+            raise ValueError("rollout needs controls of shape (T, num_controls) or steps=T")
+        controls = jnp.zeros((steps, model.num_controls))
+    elif jnp.ndim(controls) != 2 or jnp.shape(controls)[1] != model.num_controls:
+        raise ValueError(
+            f"controls must have shape (T, {model.num_controls}) = (T, model.num_controls), got {jnp.shape(controls)}"
+        )
+
+    def one_step(s, control):
+        s = step(model, s, control)
+        return s, s
+
+    return jax.lax.scan(one_step, state, controls)
+
+
+def is_finite(state: State) -> jnp.ndarray:
+    """True where every number of the state is finite (one bool per batch element)."""
+    finite = [jnp.all(jnp.isfinite(x), axis=(-2, -1)) for x in jax.tree.leaves(state)]
+    return jnp.logical_and.reduce(jnp.stack(finite), axis=0)

@@ -1,0 +1,1 @@
+"""Constraint solvers: `dbd` (DBD Algorithm 1)."""
