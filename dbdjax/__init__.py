@@ -8,10 +8,10 @@
     state = dbd.step(model, dbd.init(model))
 """
 
-from dbdjax import math
+from dbdjax import diagnostics, math
 from dbdjax.builder import ModelBuilder
 from dbdjax.model import WORLD, Model, State
 from dbdjax.pipeline import init, is_finite, rollout, step
 
-__all__ = ["WORLD", "Model", "ModelBuilder", "State", "init", "is_finite", "math", "rollout", "step"]
+__all__ = ["WORLD", "Model", "diagnostics", "ModelBuilder", "State", "init", "is_finite", "math", "rollout", "step"]
 __version__ = "0.1.0"
