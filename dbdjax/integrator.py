@@ -15,17 +15,31 @@ from dbdjax.model import Model, State
 def predict(model: Model, state: State, h: float) -> State:
     """Free motion over one substep of h seconds under gravity, DBD (21)-(24).
 
-    The gyroscopic term of (23) is evaluated at the start of the substep (the explicit form the
-    paper gives), in the body frame where the inertia is diagonal.
+    The angular update is the implicit form (20), with the precession term at t + 1, solved in
+    the body frame by one Newton step. The explicit form (23) gains energy (the paper's footnote
+    1): a rod spinning at 50 rad/s with a 16:1 inertia ratio diverged in 150 steps at 60 Hz.
     """
-    inertia = model.bodies.inertia
     vel = state.vel + h * model.gravity  # (21)
     pos = state.pos + h * vel  # (22)
     body_ang_vel = math.quat_rotate_inverse(state.quat, state.ang_vel)
-    gyroscopic = math.cross(inertia * body_ang_vel, body_ang_vel)  # (I w) x w, body frame
-    ang_vel = state.ang_vel + h * math.quat_rotate(state.quat, gyroscopic / inertia)  # (23)
+    body_ang_vel = implicit_gyroscopic(model.bodies.inertia, body_ang_vel, h)
+    ang_vel = math.quat_rotate(state.quat, body_ang_vel)  # (20)
     quat = displaced_quat(state.quat, h * ang_vel)  # (24)
     return State(pos=pos, quat=quat, vel=vel, ang_vel=ang_vel)
+
+
+def implicit_gyroscopic(inertia: jnp.ndarray, ang_vel: jnp.ndarray, h: float) -> jnp.ndarray:
+    """One Newton step on I (w' - w) + h w' x (I w') = 0, DBD (20) with no torque, body frame.
+
+    inertia: (N, 3) principal moments; ang_vel: (N, 3) body-frame angular velocity.
+    The Jacobian of the residual at w is I + h ([w]x I - [I w]x).
+    """
+    moment = inertia * ang_vel
+    residual = h * math.cross(ang_vel, moment)
+    jacobian = jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(inertia) + h * (
+        math.skew(ang_vel) * inertia[..., None, :] - math.skew(moment)
+    )
+    return ang_vel - jnp.linalg.solve(jacobian, residual[..., None])[..., 0]
 
 
 def displaced_quat(quat: jnp.ndarray, rotation: jnp.ndarray) -> jnp.ndarray:
