@@ -1,11 +1,11 @@
 """dbdjax: differentiable rigid-body dynamics in JAX by Displacement Based Dynamics.
 
-    import dbdjax as dbd
-    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
-    link = b.add_body(pos=(0, 0, 1), mass=1.0, inertia=(0.1, 0.1, 0.1))
-    b.add_ball_joint(dbd.WORLD, link, anchor=(0, 0, 2))
-    model = b.finalize(dt=1 / 60)
-    state = dbd.step(model, dbd.init(model))
+import dbdjax as dbd
+b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+link = b.add_body(pos=(0, 0, 1), mass=1.0, inertia=(0.1, 0.1, 0.1))
+b.add_ball_joint(dbd.WORLD, link, anchor=(0, 0, 2))
+model = b.finalize(dt=1 / 60)
+state = dbd.step(model, dbd.init(model))
 """
 
 from dbdjax import diagnostics, math

@@ -305,8 +305,21 @@ class ModelBuilder:
         if regularization < 0.0:
             raise ValueError(f"{label}: regularization must be >= 0, got {regularization}")
         self._joints.append(
-            _Joint(name or label, kind, int(body_a), int(body_b), anchor, axis, lower, upper,
-                   has_limits, cone, has_cone, relaxation, regularization)  # fmt: skip
+            _Joint(
+                name or label,
+                kind,
+                int(body_a),
+                int(body_b),
+                anchor,
+                axis,
+                lower,
+                upper,
+                has_limits,
+                cone,
+                has_cone,
+                relaxation,
+                regularization,
+            )  # fmt: skip
         )
         return len(self._joints) - 1
 
@@ -404,9 +417,7 @@ class ModelBuilder:
 
         body_a = np.asarray([solver_index(j.body_a) for j in self._joints], dtype=np.int32)
         body_b = np.asarray([solver_index(j.body_b) for j in self._joints], dtype=np.int32)
-        colours = colouring.greedy_colouring(
-            [(j.body_a, j.body_b) for j in self._joints], num_bodies=n
-        )
+        colours = colouring.greedy_colouring([(j.body_a, j.body_b) for j in self._joints], num_bodies=n)
         colour_joint, colour_body_slot = colouring.colour_tables(colours, body_a, body_b, n)
         structure = Structure(
             num_bodies=n,

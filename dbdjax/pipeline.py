@@ -1,10 +1,10 @@
 """The public step: `init`, `step`, `rollout`, `is_finite`. Pure functions of (model, state).
 
-    step(model, state, control):
-      scan over substeps of h = dt / substeps:
-        X*, V* = integrator.predict(model, state, h)        DBD (21)-(24)
-        dX     = solvers.dbd.solve(model, X*, h)            Algorithm 1, (45)-(52)
-        state  = integrator.apply(X*, dX, h)                (36)-(39)
+step(model, state, control):
+  scan over substeps of h = dt / substeps:
+    X*, V* = integrator.predict(model, state, h)        DBD (21)-(24)
+    dX     = solvers.dbd.solve(model, X*, h)            Algorithm 1, (45)-(52)
+    state  = integrator.apply(X*, dX, h)                (36)-(39)
 """
 
 from __future__ import annotations

@@ -38,9 +38,7 @@ def pendulum(joint: str = "hinge", length: float = 1.0, angle: float = 0.05, rad
     """A solid sphere (radius `radius`, 1 kg) hanging `length` below a pivot at the origin."""
     b = dbd.ModelBuilder(gravity=(0.0, 0.0, -9.81))
     moment = 0.4 * radius**2
-    bob = b.add_body(
-        pos=(length * np.sin(angle), 0.0, -length * np.cos(angle)), mass=1.0, inertia=(moment,) * 3
-    )
+    bob = b.add_body(pos=(length * np.sin(angle), 0.0, -length * np.cos(angle)), mass=1.0, inertia=(moment,) * 3)
     if joint == "hinge":
         b.add_hinge_joint(dbd.WORLD, bob, anchor=(0, 0, 0), axis=(0, 1, 0))
     else:

@@ -16,9 +16,10 @@ def test_vmap_of_step_equals_step_of_each_element():
     batch = jax.vmap(lambda kick: start.__class__(start.pos, start.quat, start.vel + kick, start.ang_vel))(kicks)
     stepped = jax.jit(jax.vmap(dbd.step, in_axes=(None, 0)))(model, batch)
     for i in range(3):
-        one = jax.tree.map(lambda x: x[i], batch)
+        one = jax.tree.map(lambda x, i=i: x[i], batch)
         single = jax.jit(dbd.step)(model, one)
-        for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], stepped)), jax.tree.leaves(single), strict=True):
+        element = jax.tree.map(lambda x, i=i: x[i], stepped)
+        for a, b in zip(jax.tree.leaves(element), jax.tree.leaves(single), strict=True):
             np.testing.assert_allclose(a, b, atol=1e-5)
 
 

@@ -60,6 +60,6 @@ def test_chain_ten_kilometres_from_origin_matches_chain_at_origin():
     offset = np.asarray(far_trajectory.pos) - far.astype(np.float32)
     difference = np.abs(offset - np.asarray(near.pos)).max()
     print(f"\nchain at 10 km: gap {far_gap * 1e3:.3f} mm (origin {near_gap * 1e3:.3f} mm), "
-          f"largest position difference {difference * 1e3:.2f} mm, float32 spacing there {ulp * 1e3:.2f} mm")  # fmt: skip
+          f"largest position difference {difference * 1e3:.2f} mm, float32 spacing {ulp * 1e3:.2f} mm")  # fmt: skip
     assert far_gap < near_gap + 2 * ulp
     assert difference < 10 * ulp

@@ -34,8 +34,14 @@ def builder_with_two_bodies():
             lambda b: b.add_slider_joint(0, 1, anchor=(0, 0, 0), axis=(0, 1, 0), limits=(0.5, 0.1), name="rail"),
             r"slider joint 0 \('rail'\): lower limit 0.5 is above upper limit 0.1",
         ),
-        (lambda b: b.add_hinge_joint(0, 1, anchor=(0, 0, 0), axis=(0, 0, 0)), r"hinge joint 0: axis is the zero vector"),
-        (lambda b: b.add_slider_joint(0, 1, anchor=(0, 0, 0), axis=(0, 0, 0)), r"slider joint 0: axis is the zero vector"),
+        (
+            lambda b: b.add_hinge_joint(0, 1, anchor=(0, 0, 0), axis=(0, 0, 0)),
+            r"hinge joint 0: axis is the zero vector",
+        ),
+        (
+            lambda b: b.add_slider_joint(0, 1, anchor=(0, 0, 0), axis=(0, 0, 0)),
+            r"slider joint 0: axis is the zero vector",
+        ),
         (lambda b: b.add_fixed_joint(0, 1, anchor=(0, math.inf, 0)), r"fixed joint 0: anchor contains NaN or infinity"),
         (lambda b: b.add_ball_joint(0, 1, anchor=(0, 0, 0), cone_limit=math.nan), r"ball joint 0: cone_limit is NaN"),
         (lambda b: b.add_ball_joint(0, 1, anchor=(0, 0, 0), cone_limit=-0.1), r"ball joint 0: cone_limit must be in"),

@@ -30,7 +30,9 @@ def test_exp_and_log_are_inverse():
     np.testing.assert_allclose(math.quat_log(math.quat_exp(rotation)), rotation, atol=1e-5)
     q = random_quats(32, 5)
     same = math.quat_exp(math.quat_log(q))
-    np.testing.assert_allclose(jnp.abs(math.dot(jnp.asarray(same[:, 1:]), q[:, 1:]) + same[:, 0] * q[:, 0]), 1.0, atol=1e-5)
+    np.testing.assert_allclose(
+        jnp.abs(math.dot(jnp.asarray(same[:, 1:]), q[:, 1:]) + same[:, 0] * q[:, 0]), 1.0, atol=1e-5
+    )
 
 
 def test_skew_is_the_cross_product():
@@ -52,7 +54,12 @@ def test_twist_angle_of_a_pure_twist_is_its_angle():
         (lambda v: math.safe_normalize(v)[1], jnp.zeros(3)),
         (lambda v: jnp.sum(math.quat_exp(v)), jnp.zeros(3)),
         (lambda v: jnp.sum(math.quat_log(math.quat_exp(v))), jnp.zeros(3)),
-        (lambda v: math.angle_between(jnp.array([0.0, 0.0, 1.0]), math.safe_normalize(v + jnp.array([0.0, 0.0, 1.0]))[0])[0], jnp.zeros(3)),
+        (
+            lambda v: math.angle_between(
+                jnp.array([0.0, 0.0, 1.0]), math.safe_normalize(v + jnp.array([0.0, 0.0, 1.0]))[0]
+            )[0],
+            jnp.zeros(3),
+        ),
         (lambda x: math.safe_asin(x[0]), jnp.ones(3)),
         (lambda x: math.safe_atan2(x[0], x[1]), jnp.zeros(3)),
     ],

@@ -144,9 +144,7 @@ def project(
             math.quat_rotate(quat_a, joint.local_axis_a) + math.quat_rotate(quat_b, joint.local_axis_b)
         )
         error = (angle - joint.lower) if sign < 0 else (joint.upper - angle)
-        pair, lam[row] = angular_row(
-            pair, sign * axis, error, lam[row], xi, alpha, True, flag.has_angle_limits
-        )
+        pair, lam[row] = angular_row(pair, sign * axis, error, lam[row], xi, alpha, True, flag.has_angle_limits)
 
     # Cone: the angle between the twist axes stays below the limit, DBD (81)-(83).
     if CONE in rows:
