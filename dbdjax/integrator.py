@@ -39,7 +39,7 @@ def implicit_gyroscopic(inertia: jnp.ndarray, ang_vel: jnp.ndarray, h: float) ->
     jacobian = jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(inertia) + h * (
         math.skew(ang_vel) * inertia[..., None, :] - math.skew(moment)
     )
-    return ang_vel - jnp.linalg.solve(jacobian, residual[..., None])[..., 0]
+    return ang_vel - math.matvec(math.inverse3(jacobian), residual)
 
 
 def displaced_quat(quat: jnp.ndarray, rotation: jnp.ndarray) -> jnp.ndarray:
@@ -62,7 +62,7 @@ def inverse_inertia(model: Model, predicted: State, h: float) -> jnp.ndarray:
     spin = h * predicted.ang_vel
     momentum = jnp.einsum("nij,nj->ni", world, spin)
     effective = world - math.skew(momentum) + world @ math.skew(spin)
-    return jnp.linalg.inv(effective)
+    return math.inverse3(effective)
 
 
 def apply(predicted: State, displacement: jnp.ndarray, rotation: jnp.ndarray, h: float) -> State:

@@ -186,3 +186,13 @@ def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
         + matrix[..., :, 1] * vector[..., None, 1]
         + matrix[..., :, 2] * vector[..., None, 2]
     )
+
+
+def inverse3(matrix: jnp.ndarray) -> jnp.ndarray:
+    """Inverse of (..., 3, 3) matrices by the adjugate: elementwise, so it fuses and batches
+    (a batched LAPACK call per body costs far more on CPU than the 3x3 arithmetic)."""
+    c0 = cross(matrix[..., 1, :], matrix[..., 2, :])
+    c1 = cross(matrix[..., 2, :], matrix[..., 0, :])
+    c2 = cross(matrix[..., 0, :], matrix[..., 1, :])
+    determinant = dot(matrix[..., 0, :], c0)
+    return jnp.stack([c0, c1, c2], axis=-1) / determinant[..., None, None]

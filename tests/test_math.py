@@ -73,3 +73,8 @@ def test_gradients_are_finite_at_singular_points(function, argument):
 def test_safe_norm_gradient_is_exact_away_from_zero():
     v = jnp.array([3.0, 4.0, 0.0])
     np.testing.assert_allclose(jax.grad(math.safe_norm)(v), v / 5.0, atol=1e-6)
+
+
+def test_inverse3_inverts():
+    m = jnp.asarray(np.random.default_rng(6).normal(size=(5, 3, 3))) + 3.0 * jnp.eye(3)
+    np.testing.assert_allclose(math.inverse3(m) @ m, jnp.broadcast_to(jnp.eye(3), (5, 3, 3)), atol=1e-5)
