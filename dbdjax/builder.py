@@ -18,7 +18,6 @@ from dbdjax.model import (
     BALL,
     FIXED,
     HINGE,
-    JOINT_KIND_NAMES,
     SLIDER,
     WORLD,
     Bodies,
@@ -216,15 +215,7 @@ class ModelBuilder:
         name: str | None = None,
     ) -> int:
         """Hinge about world `axis` through `anchor` (DBD 6, SI 2.4); limits (rad) in [-pi, pi]."""
-        label = self._joint_label("hinge", name)
-        anchor = _vector(anchor, 3, f"{label}: anchor")
-        axis = _unit(axis, f"{label}: axis")
-        self._check_bodies(label, body_a, body_b)
-        lower, upper = self._limits(label, limits, angular=True)
-        return self._add_joint(
-            label, name, HINGE, body_a, body_b, anchor, axis, lower, upper,
-            limits is not None, math.pi, False, relaxation, regularization,
-        )  # fmt: skip
+        return self._add_axis_joint(HINGE, body_a, body_b, anchor, axis, limits, relaxation, regularization, name)
 
     def add_slider_joint(
         self,
@@ -238,13 +229,17 @@ class ModelBuilder:
         name: str | None = None,
     ) -> int:
         """Slider (prismatic) along world `axis` (SI 2.3); limits (m) on the travel of b from a."""
-        label = self._joint_label("slider", name)
+        return self._add_axis_joint(SLIDER, body_a, body_b, anchor, axis, limits, relaxation, regularization, name)
+
+    def _add_axis_joint(self, kind, body_a, body_b, anchor, axis, limits, relaxation, regularization, name) -> int:
+        """Hinge or slider: a joint defined by an anchor and one axis, with optional limits."""
+        label = self._joint_label("hinge" if kind == HINGE else "slider", name)
         anchor = _vector(anchor, 3, f"{label}: anchor")
         axis = _unit(axis, f"{label}: axis")
         self._check_bodies(label, body_a, body_b)
-        lower, upper = self._limits(label, limits, angular=False)
+        lower, upper = self._limits(label, limits, angular=kind == HINGE)
         return self._add_joint(
-            label, name, SLIDER, body_a, body_b, anchor, axis, lower, upper,
+            label, name, kind, body_a, body_b, anchor, axis, lower, upper,
             limits is not None, math.pi, False, relaxation, regularization,
         )  # fmt: skip
 
@@ -434,7 +429,3 @@ class ModelBuilder:
             joint_names=tuple(j.name for j in self._joints),
         )
         return bodies, joints, structure
-
-    @staticmethod
-    def joint_kind_name(kind: int) -> str:
-        return JOINT_KIND_NAMES[kind]

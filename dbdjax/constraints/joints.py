@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
 from dbdjax import math
 from dbdjax.constraints.rows import BodyPair, angular_row, positional_row
@@ -43,8 +44,6 @@ class JointFlags(NamedTuple):
 
 def flags(structure: Structure):
     """numpy JointFlags for the joints of `structure` (host side, at trace time)."""
-    import numpy as np
-
     kind = structure.joint_kind.array
     limits = structure.joint_has_limits.array
     world = structure.num_bodies
