@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -18,14 +20,20 @@ from dbdjax.model import (
     BALL,
     FIXED,
     HINGE,
+    JOINT_KIND_NAMES,
     SLIDER,
     WORLD,
     Bodies,
+    Distances,
+    ForceGroup,
     Joints,
     Model,
     Options,
+    Ropes,
+    Springs,
     StaticArray,
     Structure,
+    Volumes,
 )
 
 SOLVERS = ("dbd",)
@@ -105,6 +113,34 @@ class _Joint:
     has_cone: bool
     relaxation: float
     regularization: float
+    drive_stiffness: float = 0.0
+    drive_damping: float = 0.0
+    drive_max_torque: float = math.inf
+    drive_control: tuple[int, ...] = ()  # control entries of the drive target
+    motor_max_force: float = 0.0
+    motor_control: int | None = None
+
+
+@dataclasses.dataclass
+class _Link:
+    """A spring or a distance constraint between world points on two bodies at build time."""
+
+    body_a: int
+    body_b: int
+    anchor_a: np.ndarray
+    anchor_b: np.ndarray
+    length: float
+    stiffness: float
+    damping: float
+    relaxation: float
+
+
+@dataclasses.dataclass
+class _Force:
+    bodies: tuple[int, ...]
+    function: Callable
+    params: Any
+    name: str
 
 
 class ModelBuilder:
@@ -120,6 +156,12 @@ class ModelBuilder:
         self.gravity = _vector(gravity, 3, "gravity")
         self._bodies: list[_Body] = []
         self._joints: list[_Joint] = []
+        self._springs: list[_Link] = []
+        self._distances: list[_Link] = []
+        self._ropes: list[tuple[tuple[int, ...], float, float]] = []  # (bodies, length, relaxation)
+        self._volumes: list[tuple[tuple[int, ...], float, float]] = []  # (bodies, volume, relaxation)
+        self._forces: list[_Force] = []
+        self._control_names: list[str] = []
 
     # ----------------------------------------------------------------------------- bodies
     def add_body(
@@ -293,9 +335,7 @@ class ModelBuilder:
 
     def _add_joint(self, label, name, kind, body_a, body_b, anchor, axis, lower, upper,
                    has_limits, cone, has_cone, relaxation, regularization) -> int:  # fmt: skip
-        relaxation = _scalar(relaxation, f"{label}: relaxation")
-        if not 0.0 < relaxation < 2.0:
-            raise ValueError(f"{label}: relaxation must be in (0, 2) (DBD 4.2), got {relaxation}")
+        relaxation = self._relaxation(label, relaxation)
         regularization = _scalar(regularization, f"{label}: regularization")
         if regularization < 0.0:
             raise ValueError(f"{label}: regularization must be >= 0, got {regularization}")
@@ -317,6 +357,212 @@ class ModelBuilder:
             )  # fmt: skip
         )
         return len(self._joints) - 1
+
+    # ----------------------------------------------------------------------------- actuators
+    def add_drive(
+        self,
+        joint: int,
+        stiffness: float,
+        damping: float = 0.0,
+        max_torque: float | None = None,
+        name: str | None = None,
+    ) -> slice:
+        """A torque-limited angular spring/damper pulling a joint toward a control target (DBD 9).
+
+        Hinge joints: the target is 1 control entry, the angle (rad) of b about the axle from the
+        build pose. Ball joints: 3 entries, the target rotation of b relative to a from the build
+        pose as a rotation vector (rad) in a's frame. stiffness: N m/rad. damping: N m s/rad.
+        max_torque: N m, None for unlimited (the clamp of (114)). Returns the drive's slice of
+        the control vector (controls are numbered in the order drives and motors are added).
+        """
+        label, record = self._actuated_joint("add_drive", joint)
+        if record.kind not in (HINGE, BALL):
+            raise ValueError(f"add_drive: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; drives act on hinge "
+                             "and ball joints (use add_motor for a slider)")  # fmt: skip
+        if record.drive_control:
+            raise ValueError(f"add_drive: {label} already has a drive")
+        record.drive_stiffness = self._non_negative(stiffness, f"add_drive on {label}: stiffness")
+        record.drive_damping = self._non_negative(damping, f"add_drive on {label}: damping")
+        if max_torque is not None:
+            record.drive_max_torque = _scalar(max_torque, f"add_drive on {label}: max_torque")
+            if record.drive_max_torque <= 0.0:
+                raise ValueError(f"add_drive on {label}: max_torque must be positive, got {max_torque}")
+        size = 1 if record.kind == HINGE else 3
+        controls = self._new_controls(f"drive on {name or record.name}", size)
+        record.drive_control = tuple(range(controls.start, controls.stop))
+        return controls
+
+    def add_motor(self, joint: int, max_force: float, name: str | None = None) -> slice:
+        """A motor driving a joint at a control target speed with a force limit (SI 2.3.6, 2.4.6).
+
+        Hinge joints: speed in rad/s, max_force a torque (N m). Slider joints: speed in m/s of b
+        along the axis, max_force in N. Returns the motor's slice (1 entry) of the control vector.
+        """
+        label, record = self._actuated_joint("add_motor", joint)
+        if record.kind not in (HINGE, SLIDER):
+            raise ValueError(f"add_motor: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; motors act on hinge "
+                             "and slider joints")  # fmt: skip
+        if record.motor_control is not None:
+            raise ValueError(f"add_motor: {label} already has a motor")
+        record.motor_max_force = _scalar(max_force, f"add_motor on {label}: max_force")
+        if record.motor_max_force <= 0.0:
+            raise ValueError(f"add_motor on {label}: max_force must be positive, got {max_force}")
+        controls = self._new_controls(f"motor on {name or record.name}", 1)
+        record.motor_control = controls.start
+        return controls
+
+    def _actuated_joint(self, what: str, joint) -> tuple[str, _Joint]:
+        if not isinstance(joint, (int, np.integer)) or isinstance(joint, bool) or not 0 <= joint < len(self._joints):
+            raise ValueError(f"{what}: joint = {joint!r} is not a joint index (there are {len(self._joints)} joints)")
+        record = self._joints[joint]
+        return f"{JOINT_KIND_NAMES[record.kind]} joint {joint} ({record.name!r})", record
+
+    def _new_controls(self, name: str, size: int) -> slice:
+        start = len(self._control_names)
+        self._control_names.extend([name] if size == 1 else [f"{name} [{axis}]" for axis in "xyz"[:size]])
+        return slice(start, start + size)
+
+    @staticmethod
+    def _non_negative(value, what: str) -> float:
+        number = _scalar(value, what)
+        if number < 0.0:
+            raise ValueError(f"{what} must be >= 0, got {number}")
+        return number
+
+    # ----------------------------------------------------------------------------- links
+    def add_spring(
+        self,
+        body_a: int,
+        body_b: int,
+        anchor_a: Sequence[float],
+        anchor_b: Sequence[float],
+        stiffness: float,
+        damping: float = 0.0,
+        rest_length: float | None = None,
+        relaxation: float = 1.0,
+    ) -> int:
+        """A linear spring/damper between world points `anchor_a` on body a and `anchor_b` on b
+        (at build time), DBD 8.1. stiffness N/m, damping N s/m (along the line), rest_length m
+        (default: the distance at build time). Returns the spring's index."""
+        label = f"spring {len(self._springs)}"
+        link = self._link(label, body_a, body_b, anchor_a, anchor_b, rest_length, relaxation)
+        link.stiffness = self._non_negative(stiffness, f"{label}: stiffness")
+        link.damping = self._non_negative(damping, f"{label}: damping")
+        self._springs.append(link)
+        return len(self._springs) - 1
+
+    def add_distance(
+        self,
+        body_a: int,
+        body_b: int,
+        anchor_a: Sequence[float],
+        anchor_b: Sequence[float],
+        length: float | None = None,
+        relaxation: float = 1.0,
+    ) -> int:
+        """A rigid distance constraint between world points on two bodies (default length: the
+        distance at build time). Returns its index."""
+        label = f"distance {len(self._distances)}"
+        self._distances.append(self._link(label, body_a, body_b, anchor_a, anchor_b, length, relaxation))
+        return len(self._distances) - 1
+
+    def _link(self, label, body_a, body_b, anchor_a, anchor_b, length, relaxation) -> _Link:
+        self._check_bodies(label, body_a, body_b)
+        anchor_a = _vector(anchor_a, 3, f"{label}: anchor_a")
+        anchor_b = _vector(anchor_b, 3, f"{label}: anchor_b")
+        if length is None:
+            length = float(np.linalg.norm(anchor_a - anchor_b))
+        length = self._non_negative(length, f"{label}: length")
+        return _Link(int(body_a), int(body_b), anchor_a, anchor_b, length, 0.0, 0.0,
+                     self._relaxation(label, relaxation))  # fmt: skip
+
+    @staticmethod
+    def _relaxation(label: str, relaxation) -> float:
+        relaxation = _scalar(relaxation, f"{label}: relaxation")
+        if not 0.0 < relaxation < 2.0:
+            raise ValueError(f"{label}: relaxation must be in (0, 2) (DBD 4.2), got {relaxation}")
+        return relaxation
+
+    # ----------------------------------------------------------------------------- multi-body
+    def add_rope(
+        self,
+        bodies: Sequence[int],
+        length: float | None = None,
+        segments: bool = True,
+        relaxation: float = 1.0,
+    ) -> int:
+        """A rope through the centres of mass of `bodies`, in order (DBD 10.1).
+
+        Adds the total-length constraint (118)-(121), sum of the segment lengths = `length`
+        (default: the length at build time), and with `segments` a rigid distance constraint
+        along each segment (115) at its build-time length. Pin an end with a joint or
+        `add_distance` to the world. Returns the rope's index.
+        """
+        label = f"rope {len(self._ropes)}"
+        nodes = self._distinct_bodies(label, bodies, minimum=2)
+        centres = np.stack([self._bodies[b].pos for b in nodes])
+        built = float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1)))
+        length = built if length is None else self._non_negative(length, f"{label}: length")
+        relaxation = self._relaxation(label, relaxation)
+        self._ropes.append((nodes, length, relaxation))
+        if segments:
+            for a, b in zip(nodes[:-1], nodes[1:], strict=True):
+                self.add_distance(a, b, self._bodies[a].pos, self._bodies[b].pos, relaxation=relaxation)
+        return len(self._ropes) - 1
+
+    def add_volume(self, bodies: Sequence[int], rest_volume: float | None = None, relaxation: float = 1.0) -> int:
+        """Keep the signed volume of the tetrahedron of four centres of mass (DBD 10.2).
+
+        rest_volume: m^3, signed (positive when x1 - x0, x2 - x0, x3 - x0 are right-handed);
+        default: the volume at build time. Returns the constraint's index.
+        """
+        label = f"volume {len(self._volumes)}"
+        nodes = self._distinct_bodies(label, bodies, minimum=4)
+        if len(nodes) != 4:
+            raise ValueError(f"{label}: a tetrahedron has 4 bodies, got {len(nodes)}")
+        x = np.stack([self._bodies[b].pos for b in nodes])
+        built = float(np.dot(x[1] - x[0], np.cross(x[2] - x[0], x[3] - x[0])) / 6.0)
+        if rest_volume is None:
+            if abs(built) < 1e-12:
+                raise ValueError(f"{label}: the four centres of mass are coplanar; give rest_volume")
+            rest_volume = built
+        rest_volume = _scalar(rest_volume, f"{label}: rest_volume")
+        self._volumes.append((nodes, rest_volume, self._relaxation(label, relaxation)))
+        return len(self._volumes) - 1
+
+    def _distinct_bodies(self, label: str, bodies, minimum: int) -> tuple[int, ...]:
+        nodes = tuple(bodies)
+        if len(nodes) < minimum:
+            raise ValueError(f"{label}: needs at least {minimum} bodies, got {len(nodes)}")
+        for body in nodes:
+            if not isinstance(body, (int, np.integer)) or isinstance(body, bool) or not 0 <= body < len(self._bodies):
+                raise ValueError(f"{label}: {body!r} is not a body index (there are {len(self._bodies)} bodies; "
+                                 "the world cannot be a node)")  # fmt: skip
+        if len(set(nodes)) != len(nodes):
+            raise ValueError(f"{label}: a body appears twice in {list(nodes)}")
+        return tuple(int(b) for b in nodes)
+
+    # ----------------------------------------------------------------------------- forces
+    def add_force(self, bodies: Sequence[int], function: Callable, params: Any = None, name: str | None = None) -> int:
+        """A force/torque given as a JAX function of the state of `bodies` (DBD 8, (94)-(99)).
+
+        function(pos (k, 3), quat (k, 4), vel (k, 3), ang_vel (k, 3), params) -> (force (k, 3),
+        torque (k, 3)): world frame, forces at the centres of mass, k = len(bodies). It is
+        applied implicitly (its derivative w.r.t. the bodies' motion is taken by autodiff), so
+        stiff springs and dampers stay stable. params: a pytree of arrays, differentiable
+        (`model.forces`). Elements sharing one function are vmapped together; their params must
+        have the same structure. Returns the force's index.
+        """
+        label = f"force {len(self._forces)}" + (f" ({name!r})" if name else "")
+        if not callable(function):
+            raise ValueError(f"{label}: function must be callable, got {function!r}")
+        nodes = self._distinct_bodies(label, bodies, minimum=1)
+        params = jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), params)
+        for leaf in jax.tree.leaves(params):
+            if not np.all(np.isfinite(leaf)):
+                raise ValueError(f"{label}: params contain NaN or infinity")
+        self._forces.append(_Force(nodes, function, params, name or label))
+        return len(self._forces) - 1
 
     # ----------------------------------------------------------------------------- finalize
     def finalize(
@@ -350,16 +596,25 @@ class ModelBuilder:
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
 
-        bodies, joints, structure = self._arrays()
         options = Options(
             dt=dt, substeps=int(substeps), iterations=int(iterations), solver=solver,
             jacobi=bool(jacobi), velocity_dependent_inertia=bool(velocity_dependent_inertia),
             checkpoint=bool(checkpoint),
         )  # fmt: skip
-        return Model(bodies=bodies, joints=joints, gravity=jnp.asarray(self.gravity),
-                     structure=structure, options=options)  # fmt: skip
+        return self._model(options)
 
-    def _arrays(self) -> tuple[Bodies, Joints, Structure]:
+    def _frame(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """(position, orientation) of a body at build time; the world is the identity at the origin."""
+        if index == WORLD:
+            return np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+        return self._bodies[index].pos, self._bodies[index].quat
+
+    def _local_point(self, index: int, point: np.ndarray) -> np.ndarray:
+        """A world point at build time in the frame of body `index` (world coordinates for the world)."""
+        pos, quat = self._frame(index)
+        return _rotate(quat, point - pos, inverse=True)
+
+    def _model(self, options: Options) -> Model:
         n = len(self._bodies)
         body = self._bodies
         bodies = Bodies(
@@ -371,61 +626,96 @@ class ModelBuilder:
             initial_ang_vel=jnp.asarray(np.stack([b.ang_vel for b in body])),
         )
 
-        identity = np.array([1.0, 0.0, 0.0, 0.0])
-        rows = {k: [] for k in ("anchor_a", "anchor_b", "axis_a", "axis_b", "rest")}
-        for joint in self._joints:
-            frames = []
-            for index in (joint.body_a, joint.body_b):
-                if index == WORLD:  # the world frame is the identity at the origin
-                    frames.append((np.zeros(3), identity))
-                else:
-                    frames.append((body[index].pos, body[index].quat))
-            (pos_a, quat_a), (pos_b, quat_b) = frames
-            rows["anchor_a"].append(_rotate(quat_a, joint.anchor - pos_a, inverse=True))
-            rows["anchor_b"].append(_rotate(quat_b, joint.anchor - pos_b, inverse=True))
-            rows["axis_a"].append(_rotate(quat_a, joint.axis, inverse=True))
-            rows["axis_b"].append(_rotate(quat_b, joint.axis, inverse=True))
-            rows["rest"].append(_multiply(_conjugate(quat_a), quat_b))
+        def table(rows, width: int) -> jnp.ndarray:
+            return jnp.asarray(np.reshape(np.asarray(rows, dtype=np.float64), (-1, width)))
 
-        def stacked(name: str, width: int) -> jnp.ndarray:
-            return jnp.asarray(np.reshape(np.asarray(rows[name]), (-1, width)))
-
-        def column(field: str) -> jnp.ndarray:
-            return jnp.asarray(np.asarray([getattr(j, field) for j in self._joints], dtype=np.float64))
-
-        joints = Joints(
-            local_anchor_a=stacked("anchor_a", 3),
-            local_anchor_b=stacked("anchor_b", 3),
-            local_axis_a=stacked("axis_a", 3),
-            local_axis_b=stacked("axis_b", 3),
-            rest_rotation=stacked("rest", 4),
-            lower=column("lower"),
-            upper=column("upper"),
-            cone_limit=column("cone_limit"),
-            relaxation=column("relaxation"),
-            regularization=column("regularization"),
-        )
+        def column(records, field: str) -> jnp.ndarray:
+            return jnp.asarray(np.asarray([getattr(r, field) for r in records], dtype=np.float64))
 
         # Body index n (one past the last) stands for the world in the solver's tables.
         def solver_index(index: int) -> int:
             return n if index == WORLD else index
 
-        body_a = np.asarray([solver_index(j.body_a) for j in self._joints], dtype=np.int32)
-        body_b = np.asarray([solver_index(j.body_b) for j in self._joints], dtype=np.int32)
-        colours = colouring.greedy_colouring([(j.body_a, j.body_b) for j in self._joints], num_bodies=n)
-        colour_joint, colour_body_slot = colouring.colour_tables(colours, body_a, body_b, n)
+        def body_table(rows, width: int) -> StaticArray:
+            return StaticArray(np.reshape(np.asarray(rows, dtype=np.int32), (-1, width)))
+
+        js = self._joints
+        joints = Joints(
+            local_anchor_a=table([self._local_point(j.body_a, j.anchor) for j in js], 3),
+            local_anchor_b=table([self._local_point(j.body_b, j.anchor) for j in js], 3),
+            local_axis_a=table([_rotate(self._frame(j.body_a)[1], j.axis, inverse=True) for j in js], 3),
+            local_axis_b=table([_rotate(self._frame(j.body_b)[1], j.axis, inverse=True) for j in js], 3),
+            rest_rotation=table([_multiply(_conjugate(self._frame(j.body_a)[1]), self._frame(j.body_b)[1])
+                                 for j in js], 4),  # fmt: skip
+            **{f: column(js, f) for f in ("lower", "upper", "cone_limit", "relaxation", "regularization",
+                                          "drive_stiffness", "drive_damping", "drive_max_torque", "motor_max_force")},
+        )  # fmt: skip
+
+        def links(records) -> tuple[dict, StaticArray]:
+            arrays = dict(
+                local_anchor_a=table([self._local_point(r.body_a, r.anchor_a) for r in records], 3),
+                local_anchor_b=table([self._local_point(r.body_b, r.anchor_b) for r in records], 3),
+                relaxation=column(records, "relaxation"),
+            )
+            return arrays, body_table([(solver_index(r.body_a), solver_index(r.body_b)) for r in records], 2)
+
+        spring_arrays, spring_bodies = links(self._springs)
+        springs = Springs(rest_length=column(self._springs, "length"), stiffness=column(self._springs, "stiffness"),
+                          damping=column(self._springs, "damping"), **spring_arrays)  # fmt: skip
+        distance_arrays, distance_bodies = links(self._distances)
+        distances = Distances(length=column(self._distances, "length"), **distance_arrays)
+
+        longest = max((len(nodes) for nodes, _, _ in self._ropes), default=2)
+        ropes = Ropes(length=table([r[1] for r in self._ropes], 1)[:, 0],
+                      relaxation=table([r[2] for r in self._ropes], 1)[:, 0])  # fmt: skip
+        rope_bodies = body_table([list(nodes) + [n] * (longest - len(nodes)) for nodes, _, _ in self._ropes], longest)
+        volumes = Volumes(rest_volume=table([v[1] for v in self._volumes], 1)[:, 0],
+                          relaxation=table([v[2] for v in self._volumes], 1)[:, 0])  # fmt: skip
+        volume_bodies = body_table([nodes for nodes, _, _ in self._volumes], 4)
+
+        groups: dict[tuple, list[_Force]] = {}
+        for force in self._forces:  # one group per function, body count and params structure
+            key = (force.function, len(force.bodies), jax.tree.structure(force.params))
+            groups.setdefault(key, []).append(force)
+        force_groups = tuple(
+            ForceGroup(function=key[0], bodies=body_table([f.bodies for f in members], key[1]),
+                       name=f"forces {getattr(key[0], '__name__', 'function')} {g}")
+            for g, (key, members) in enumerate(groups.items())
+        )  # fmt: skip
+        force_params = tuple(
+            jax.tree.map(lambda *leaves: jnp.asarray(np.stack(leaves)), *[f.params for f in members])
+            for members in groups.values()
+        )
+
+        num_controls = len(self._control_names)
+
+        def controls(entries, width: int) -> StaticArray:
+            return body_table([list(e) + [num_controls] * (width - len(e)) for e in entries], width)
+
         structure = Structure(
             num_bodies=n,
-            num_joints=len(self._joints),
-            num_controls=0,
-            joint_body_a=StaticArray(body_a),
-            joint_body_b=StaticArray(body_b),
-            joint_kind=StaticArray(np.asarray([j.kind for j in self._joints], dtype=np.int32)),
-            joint_has_limits=StaticArray(np.asarray([j.has_limits for j in self._joints], dtype=bool)),
-            joint_has_cone=StaticArray(np.asarray([j.has_cone for j in self._joints], dtype=bool)),
-            colour_joint=StaticArray(colour_joint),
-            colour_body_slot=StaticArray(colour_body_slot),
+            num_joints=len(js),
+            num_controls=num_controls,
+            joint_body_a=StaticArray(np.asarray([solver_index(j.body_a) for j in js], dtype=np.int32)),
+            joint_body_b=StaticArray(np.asarray([solver_index(j.body_b) for j in js], dtype=np.int32)),
+            joint_kind=StaticArray(np.asarray([j.kind for j in js], dtype=np.int32)),
+            joint_has_limits=StaticArray(np.asarray([j.has_limits for j in js], dtype=bool)),
+            joint_has_cone=StaticArray(np.asarray([j.has_cone for j in js], dtype=bool)),
+            joint_drive_control=controls([j.drive_control for j in js], 3),
+            joint_motor_control=StaticArray(
+                np.asarray([num_controls if j.motor_control is None else j.motor_control for j in js], dtype=np.int32)
+            ),
+            spring_bodies=spring_bodies,
+            distance_bodies=distance_bodies,
+            rope_bodies=rope_bodies,
+            volume_bodies=volume_bodies,
+            force_groups=force_groups,
+            colours=(),
             body_names=tuple(b.name for b in body),
-            joint_names=tuple(j.name for j in self._joints),
+            joint_names=tuple(j.name for j in js),
+            control_names=tuple(self._control_names),
         )
-        return bodies, joints, structure
+        structure = dataclasses.replace(structure, colours=colouring.colour_groups(structure.family_bodies(), n))
+        return Model(bodies=bodies, joints=joints, springs=springs, distances=distances, ropes=ropes,
+                     volumes=volumes, forces=force_params, gravity=jnp.asarray(self.gravity),
+                     structure=structure, options=options)  # fmt: skip

@@ -104,6 +104,8 @@ class Joints:
     lower/upper: (J,) hinge angle or ball twist limits (rad), slider limits (m).
     cone_limit: (J,) largest angle between the twist axes of a ball joint, rad.
     relaxation: (J,) xi of DBD (46). regularization: (J,) alpha of DBD (47)-(52).
+    drive_stiffness (N m/rad), drive_damping (N m s/rad), drive_max_torque (N m): (J,) the drive
+      of DBD 9 (zero where a joint has none). motor_max_force: (J,) N (slider) or N m (hinge).
     """
 
     local_anchor_a: jnp.ndarray
@@ -116,21 +118,122 @@ class Joints:
     cone_limit: jnp.ndarray
     relaxation: jnp.ndarray
     regularization: jnp.ndarray
+    drive_stiffness: jnp.ndarray
+    drive_damping: jnp.ndarray
+    drive_max_torque: jnp.ndarray
+    motor_max_force: jnp.ndarray
 
 
 Joints = _pytree(Joints)
 
 
 @dataclasses.dataclass(frozen=True)
+class Springs:
+    """Linear springs/dampers between two body points (DBD 8.1), L rows.
+
+    local_anchor_a/b: (L, 3) the end points in the body frames (world coordinates for the world).
+    rest_length: (L,) m. stiffness: (L,) N/m. damping: (L,) N s/m, along the spring's line.
+    relaxation: (L,) xi of DBD (105).
+    """
+
+    local_anchor_a: jnp.ndarray
+    local_anchor_b: jnp.ndarray
+    rest_length: jnp.ndarray
+    stiffness: jnp.ndarray
+    damping: jnp.ndarray
+    relaxation: jnp.ndarray
+
+
+Springs = _pytree(Springs)
+
+
+@dataclasses.dataclass(frozen=True)
+class Distances:
+    """Rigid distance constraints |p_a - p_b| = length between two body points, D rows.
+
+    local_anchor_a/b: (D, 3) body frames. length: (D,) m. relaxation: (D,) xi.
+    """
+
+    local_anchor_a: jnp.ndarray
+    local_anchor_b: jnp.ndarray
+    length: jnp.ndarray
+    relaxation: jnp.ndarray
+
+
+Distances = _pytree(Distances)
+
+
+@dataclasses.dataclass(frozen=True)
+class Ropes:
+    """Total-length constraints over the centres of mass of a row of bodies (DBD 10.1), R rows.
+
+    length: (R,) m, the sum of the segment lengths. relaxation: (R,) xi.
+    """
+
+    length: jnp.ndarray
+    relaxation: jnp.ndarray
+
+
+Ropes = _pytree(Ropes)
+
+
+@dataclasses.dataclass(frozen=True)
+class Volumes:
+    """Volume constraints on tetrahedra of four centres of mass (DBD 10.2), V rows.
+
+    rest_volume: (V,) m^3, signed: positive when x1 - x0, x2 - x0, x3 - x0 are right-handed.
+    relaxation: (V,) xi.
+    """
+
+    rest_volume: jnp.ndarray
+    relaxation: jnp.ndarray
+
+
+Volumes = _pytree(Volumes)
+
+
+@dataclasses.dataclass(frozen=True)
+class ForceGroup:
+    """Static part of the user forces sharing one function (DBD 8, (94)-(99)).
+
+    function(pos (k, 3), quat (k, 4), vel (k, 3), ang_vel (k, 3), params) -> (force (k, 3) N,
+    torque (k, 3) N m), world frame, forces at the centres of mass. bodies: (M, k) the bodies
+    of each of the group's M elements (index N for the world).
+    """
+
+    function: Any
+    bodies: StaticArray
+    name: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Colour:
+    """One colour group: constraint nodes that share no dynamic body (colouring.py).
+
+    nodes: per constraint family (in the order of `Structure.family_bodies`), the indices of
+    the family's nodes in this colour. body_slot: (N + 1,) where each body's displacement is
+    found afterwards: an index into [the node rows of every family in order, each node's S
+    bodies in turn, then the N + 1 previous rows]. A gather, never a scatter.
+    """
+
+    nodes: tuple[StaticArray, ...]
+    body_slot: StaticArray
+
+
+@dataclasses.dataclass(frozen=True)
 class Structure:
     """Static structure of a model: counts, indices and the colouring of the constraint graph.
 
-    Body index N (one past the last body) is the world in the index arrays below.
+    Body index N (one past the last body) is the world in the index arrays below, and control
+    index num_controls means "no control".
     joint_body_a/b: (J,) int. joint_kind: (J,) int (BALL, HINGE, SLIDER, FIXED).
     joint_has_limits / joint_has_cone: (J,) bool.
-    colour_joint: (C, K) int, the joint in each slot of each colour; J marks an empty slot.
-    colour_body_slot: (C, N + 1) int, where each body's displacement is found after colour c:
-      an index into [side a of slots 0..K-1, side b of slots 0..K-1, the N + 1 previous rows].
+    joint_drive_control: (J, 3) int, the control entries of each joint's drive target.
+    joint_motor_control: (J,) int, the control entry of each joint's motor speed.
+    spring_bodies (L, 2), distance_bodies (D, 2), volume_bodies (V, 4): int.
+    rope_bodies: (R, S) int, each rope's nodes in order, padded with N to the longest rope.
+    force_groups: the user forces, one group per function.
+    colours: the colour groups of the solver (Gauss-Seidel order).
     """
 
     num_bodies: int
@@ -141,14 +244,29 @@ class Structure:
     joint_kind: StaticArray
     joint_has_limits: StaticArray
     joint_has_cone: StaticArray
-    colour_joint: StaticArray
-    colour_body_slot: StaticArray
+    joint_drive_control: StaticArray
+    joint_motor_control: StaticArray
+    spring_bodies: StaticArray
+    distance_bodies: StaticArray
+    rope_bodies: StaticArray
+    volume_bodies: StaticArray
+    force_groups: tuple[ForceGroup, ...]
+    colours: tuple[Colour, ...]
     body_names: tuple[str, ...]
     joint_names: tuple[str, ...]
+    control_names: tuple[str, ...]
 
     @property
     def num_colours(self) -> int:
-        return self.colour_joint.array.shape[0]
+        return len(self.colours)
+
+    def family_bodies(self) -> tuple[np.ndarray, ...]:
+        """The bodies of every constraint node, one (M, S) table per family, in solver order:
+        joints, springs, distances, ropes, volumes, then each force group."""
+        joints = np.stack([self.joint_body_a.array, self.joint_body_b.array], axis=-1).reshape(-1, 2)
+        fixed = (joints, self.spring_bodies.array, self.distance_bodies.array, self.rope_bodies.array,
+                 self.volume_bodies.array)  # fmt: skip
+        return fixed + tuple(group.bodies.array for group in self.force_groups)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,10 +284,16 @@ class Options:
 
 @dataclasses.dataclass(frozen=True)
 class Model:
-    """A simulatable model: `bodies`, `joints` and `gravity` are differentiable leaves."""
+    """A simulatable model: every float array (bodies, joints, springs, ..., gravity) is a
+    differentiable leaf; `structure` and `options` are static."""
 
     bodies: Bodies
     joints: Joints
+    springs: Springs
+    distances: Distances
+    ropes: Ropes
+    volumes: Volumes
+    forces: tuple[Any, ...]  # the parameters of each force group, leading axis M
     gravity: jnp.ndarray  # (3,) m/s^2
     structure: Structure
     options: Options

@@ -2,8 +2,8 @@
 
 step(model, state, control):
   scan over substeps of h = dt / substeps:
-    X*, V* = integrator.predict(model, state, h)        DBD (21)-(24)
-    dX     = solvers.dbd.solve(model, X*, h)            Algorithm 1, (45)-(52)
+    X*, V* = integrator.predict(model, state, h)                 DBD (21)-(24)
+    dX     = solvers.dbd.solve(model, X*, control, h)            Algorithm 1, (45)-(52)
     state  = integrator.apply(X*, dX, h)                (36)-(39)
 """
 
@@ -37,10 +37,10 @@ def _check_control(model: Model, control) -> None:
         raise ValueError(f"control must have shape ({expected},) = (model.num_controls,), got {shape}")
 
 
-def substep(model: Model, state: State, h: float) -> State:
+def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -> State:
     """One substep of h seconds: predict, solve, apply."""
     predicted = integrator.predict(model, state, h)
-    displacement, rotation = dbd.solve(model, predicted, h)
+    displacement, rotation = dbd.solve(model, predicted, control, h)
     return integrator.apply(predicted, displacement, rotation, h)
 
 
@@ -53,7 +53,7 @@ def step(model: Model, state: State, control: jnp.ndarray | None = None) -> Stat
     _check_control(model, control)
     options = model.options
     h = options.dt / options.substeps
-    one_substep = lambda s: substep(model, s, h)  # noqa: E731
+    one_substep = lambda s: substep(model, s, control, h)  # noqa: E731
     if options.checkpoint:
         one_substep = jax.checkpoint(one_substep)
     if options.substeps == 1:

@@ -1,3 +1,81 @@
 """Constraint families. Each is data (struct of arrays, one row per constraint) plus a pure
 projection that moves the displacements of the bodies it touches (DBD Algorithm 1, inner loop).
-`rows.py` holds the two scalar row updates every family is built from."""
+`rows.py` holds the scalar row updates every family is built from; `families` lists a model's
+families in the order of `Structure.family_bodies`, which is the order the colouring uses.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dbdjax.constraints import forces, joints, links, multibody
+from dbdjax.model import Model
+
+
+class Family(NamedTuple):
+    """One constraint family of a model, ready for the solver.
+
+    bodies: (M, S) int, the bodies of each node (index N = the world).
+    params: pytree of arrays with leading axis M (differentiable model leaves, controls).
+    static: pytree of numpy arrays with leading axis M (flags fixed at finalize).
+    project(params, static, bodies: BodySet, multipliers) -> (dx (S, 3), dtheta (S, 3), multipliers),
+      for one node (the solver vmaps it). num_multipliers: the size of one node's multipliers.
+    """
+
+    name: str
+    bodies: np.ndarray
+    params: Any
+    static: Any
+    project: Callable
+    num_multipliers: int
+
+
+def families(model: Model, control: jnp.ndarray | None, h: float, dtype) -> list[Family]:
+    """Every constraint family of `model`, with this step's control, for substeps of h seconds."""
+    structure = model.structure
+    tables = structure.family_bodies()
+    world = structure.num_bodies
+
+    def on_world(table: np.ndarray) -> np.ndarray:
+        return table == world
+
+    joint_targets = joints.targets(structure, control, dtype)
+    rows = joints.rows_in_use(structure)
+    result = [
+        Family(
+            "joints", tables[0], (model.joints, joint_targets), joints.flags(structure),
+            lambda p, flag, bodies, lam: joints.project(p[0], flag, p[1], bodies, lam, h, rows),
+            joints.NUM_MULTIPLIERS,
+        ),
+        Family("springs", tables[1], model.springs, on_world(tables[1]),
+               functools.partial(links.project_spring, h=h), 1),
+        Family("distances", tables[2], model.distances, on_world(tables[2]), links.project_distance, 1),
+        Family("ropes", tables[3], model.ropes, ~on_world(tables[3]), multibody.project_rope, 1),
+        Family("volumes", tables[4], model.volumes, np.zeros(len(tables[4]), bool),
+               lambda p, _, bodies, lam: multibody.project_volume(p, bodies, lam), 1),
+    ]  # fmt: skip
+    for group, params, table in zip(structure.force_groups, model.forces, tables[5:], strict=True):
+        k = table.shape[1]
+        project = functools.partial(_project_force_flat, group.function, h=h, k=k)
+        result.append(Family(group.name, table, params, np.zeros(len(table), bool), project, 6 * k))
+    return result
+
+
+def _project_force_flat(function, params, _, bodies, multipliers, h, k):
+    dx, dtheta, kappa = forces.project_force(function, params, bodies, jnp.reshape(multipliers, (k, 6)), h)
+    return dx, dtheta, jnp.reshape(kappa, (-1,))
+
+
+def gather(family: Family, nodes: np.ndarray) -> Family:
+    """The family restricted to `nodes` (static indices), parameters gathered once."""
+    return family._replace(
+        bodies=family.bodies[nodes],
+        params=jax.tree.map(lambda x: x[nodes], family.params),
+        static=jax.tree.map(lambda x: x[nodes], family.static),
+    )

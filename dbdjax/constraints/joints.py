@@ -1,15 +1,19 @@
 """Joints: ball, hinge, slider and fixed, each one node of the constraint graph.
 
-All rows of one joint (angular lock, angle limits, cone, slider limits, then the point
-constraint) are projected together, one after another, in `project` (Gauss-Seidel inside the
-joint). One function serves every kind: the rows a kind does not have are inactive (their
+All rows of one joint (drive, motor, angular lock, angle limits, cone, slider limits, then the
+point constraint) are projected together, one after another, in `project` (Gauss-Seidel inside
+the joint). One function serves every kind: the rows a kind does not have are inactive (their
 multiplier step is zero), so a colour group of mixed kinds is a single `jax.vmap`.
 
 Row by kind:
-  ball   point (DBD 5, magnitude form (54)), cone (DBD (81)-(83)), twist limits
-  hinge  point, axle alignment (DBD 6, (73)-(80); SI 2.4), angle limits (SI 2.4.5, clamped as DBD 6.1)
-  slider point off the axis (SI 2.3.1), rotation lock (SI (53)), travel limits (SI 2.3.5)
+  ball   point (DBD 5, magnitude form (54)), cone (DBD (81)-(83)), twist limits,
+         drive to a target relative orientation (DBD 9, (110)-(114), three-axis)
+  hinge  point, axle alignment (DBD 6, (73)-(80); SI 2.4), angle limits (SI 2.4.5, clamped as
+         DBD 6.1), drive to a target angle (DBD 9 about the axle), motor (SI 2.4.6)
+  slider point off the axis (SI 2.3.1), rotation lock (SI (53)), travel limits (SI 2.3.5),
+         motor (SI 2.3.6)
   fixed  point, rotation lock (SI 2.5)
+Drives and motors go first so that the hard rows, and the point row last of all, have the last word.
 """
 
 from __future__ import annotations
@@ -20,35 +24,48 @@ import jax.numpy as jnp
 import numpy as np
 
 from dbdjax import math
-from dbdjax.constraints.rows import BodyPair, angular_row, positional_row
+from dbdjax.constraints import rows as row
+from dbdjax.constraints.rows import BodyPair, BodySet
 from dbdjax.model import BALL, FIXED, HINGE, SLIDER, Joints, Structure
 
-# Multiplier rows per joint, in projection order.
-ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE, TRAVEL_LOWER, TRAVEL_UPPER, POINT = range(7)
-NUM_ROWS = 7
+# Multipliers of one joint, in the order of `project`'s rows (a ball drive owns three).
+DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 5, 6, 7
+TRAVEL_LOWER, TRAVEL_UPPER, POINT = 8, 9, 10
+NUM_MULTIPLIERS = 11
 
 
 class JointFlags(NamedTuple):
-    """Static per-joint switches, (J,) bool each (padded slots have all False)."""
+    """Static per-joint switches, (J,) bool each."""
 
-    active: jnp.ndarray
-    world_a: jnp.ndarray
-    world_b: jnp.ndarray
-    hinge: jnp.ndarray
-    slider: jnp.ndarray
-    rotation_locked: jnp.ndarray  # slider and fixed
-    has_angle_limits: jnp.ndarray  # hinge angle or ball twist
-    has_cone: jnp.ndarray
-    has_travel_limits: jnp.ndarray
+    world_a: np.ndarray
+    world_b: np.ndarray
+    hinge: np.ndarray
+    slider: np.ndarray
+    rotation_locked: np.ndarray  # slider and fixed
+    has_angle_limits: np.ndarray  # hinge angle or ball twist
+    has_cone: np.ndarray
+    has_travel_limits: np.ndarray
+    hinge_drive: np.ndarray
+    ball_drive: np.ndarray
+    angular_motor: np.ndarray  # hinge
+    linear_motor: np.ndarray  # slider
 
 
-def flags(structure: Structure):
+class Targets(NamedTuple):
+    """What the control vector asks of one joint this step (zero where it has no actuator)."""
+
+    drive: jnp.ndarray  # (3,) hinge: [angle, 0, 0] rad; ball: rotation vector, rad, in a's frame
+    motor: jnp.ndarray  # () rad/s (hinge) or m/s (slider)
+
+
+def flags(structure: Structure) -> JointFlags:
     """numpy JointFlags for the joints of `structure` (host side, at trace time)."""
     kind = structure.joint_kind.array
     limits = structure.joint_has_limits.array
+    drive = structure.joint_drive_control.array[:, 0] < structure.num_controls
+    motor = structure.joint_motor_control.array < structure.num_controls
     world = structure.num_bodies
     return JointFlags(
-        active=np.ones_like(limits),
         world_a=structure.joint_body_a.array == world,
         world_b=structure.joint_body_b.array == world,
         hinge=kind == HINGE,
@@ -57,23 +74,33 @@ def flags(structure: Structure):
         has_angle_limits=limits & ((kind == HINGE) | (kind == BALL)),
         has_cone=structure.joint_has_cone.array & (kind == BALL),
         has_travel_limits=limits & (kind == SLIDER),
+        hinge_drive=drive & (kind == HINGE),
+        ball_drive=drive & (kind == BALL),
+        angular_motor=motor & (kind == HINGE),
+        linear_motor=motor & (kind == SLIDER),
     )
 
 
-def rows_in_use(structure: Structure) -> frozenset[int]:
-    """The rows some joint of the model has. The others are left out of the trace altogether:
-    a chain of ball joints compiles to the point row alone."""
+def targets(structure: Structure, control: jnp.ndarray | None, dtype) -> Targets:
+    """Each joint's slice of the flat control vector, (J, 3) drive and (J,) motor targets."""
+    padded = jnp.zeros((structure.num_controls + 1,), dtype)  # the last entry reads as "no actuator"
+    if control is not None:
+        padded = padded.at[:-1].set(control)
+    return Targets(
+        drive=padded[structure.joint_drive_control.array],
+        motor=padded[structure.joint_motor_control.array],
+    )
+
+
+def rows_in_use(structure: Structure) -> frozenset[str]:
+    """The kinds of row some joint of the model has (the names of `JointFlags`, plus "point").
+    The others are left out of the trace altogether: a chain of ball joints compiles to the point
+    row alone."""
     f = flags(structure)
-    used = {POINT}
+    used = {name for name, values in f._asdict().items() if values.any()}
     if (f.hinge | f.rotation_locked).any():
-        used.add(ROTATION_LOCK)
-    if f.has_angle_limits.any():
-        used.update((ANGLE_LOWER, ANGLE_UPPER))
-    if f.has_cone.any():
-        used.add(CONE)
-    if f.has_travel_limits.any():
-        used.update((TRAVEL_LOWER, TRAVEL_UPPER))
-    return frozenset(used)
+        used.add("rotation_lock")
+    return frozenset(used | {"point"})
 
 
 def _anchor_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
@@ -99,25 +126,92 @@ def _relative_rotation(joint: Joints, quat_a, quat_b):
     return math.quat_multiply(relative, math.quat_conjugate(joint.rest_rotation))
 
 
+def _hinge_angle(joint: Joints, pair: BodyPair):
+    """(angle of b about the axle from its rest pose (rad), world axle = dangle/dtheta_b)."""
+    quat_a, quat_b = pair.current_quats()
+    angle = math.quat_twist_angle(_relative_rotation(joint, quat_a, quat_b), joint.local_axis_a)
+    # The bisector of the two bodies' axes (equal for a hinge, close for a ball's twist axis).
+    axis, _ = math.safe_normalize(
+        math.quat_rotate(quat_a, joint.local_axis_a) + math.quat_rotate(quat_b, joint.local_axis_b)
+    )
+    return angle, axis
+
+
+def _slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
+    """(travel d = (p_b - p_a) . axis, world axis, arm_a, arm_b) of a slider, SI (65)-(78).
+
+    Body a's arm reaches the point of a level with p_b, so an impulse along the axis acts on the
+    line through both points."""
+    quat_a, quat_b = pair.current_quats()
+    delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
+    axis = math.quat_rotate(quat_a, joint.local_axis_a)
+    travel = -math.dot(delta, axis)
+    across = delta + travel[..., None] * axis
+    return travel, axis, arm_a - across, arm_b
+
+
 def project(
     joint: Joints,
     flag: JointFlags,
-    pair: BodyPair,
+    target: Targets,
+    bodies: BodySet,
     multipliers: jnp.ndarray,
-    rows: frozenset[int] = frozenset(range(NUM_ROWS)),
-) -> tuple[BodyPair, jnp.ndarray]:
+    h: float,
+    rows: frozenset[str],
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Project every row of one joint once; `joint` holds one joint's parameters (no J axis).
 
-    multipliers: (NUM_ROWS,) accumulated lambda of each row this substep. rows: the rows to
-    trace (static, `rows_in_use`). Returns the moved pair and the updated multipliers.
+    bodies: the two bodies (row 0 = a, row 1 = b). multipliers: (NUM_MULTIPLIERS,) lambda of each
+    row so far this substep. h: the substep (s). rows: the rows to trace (static, `rows_in_use`).
+    Returns (dx (2, 3), dtheta (2, 3), multipliers).
     """
+    pair = BodyPair.of(bodies)
     xi, alpha = joint.relaxation, joint.regularization
-    lam = [multipliers[i] for i in range(NUM_ROWS)]
+    lam = list(multipliers)
+    hard = lambda active, inequality=False: row.rigid(xi, alpha, active, inequality)  # noqa: E731
+
+    # Drive (DBD 9): an implicit angular spring/damper toward the control target with the torque
+    # limit (114). Hinge: the angle about the axle, wrapped to (-pi, pi]. Ball: the rotation
+    # vector of E = X T^-1 (X the relative rotation from rest, T = exp(target)) in world axes.
+    stiffness_h2, damping_h = joint.drive_stiffness * h**2, joint.drive_damping * h
+    torque_bound = joint.drive_max_torque * h**2
+    if "hinge_drive" in rows:
+        angle, axis = _hinge_angle(joint, pair)
+        offset = angle - target.drive[0]
+        error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
+        pair, lam[DRIVE] = row.angular_row(
+            pair, -axis, error, lam[DRIVE],
+            row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h,
+        )  # fmt: skip
+    if "ball_drive" in rows:
+        quat_a, quat_b = pair.current_quats()
+        goal = math.quat_exp(target.drive)  # the target relative rotation, in a's frame
+        error_rotation = math.quat_multiply(_relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
+        error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
+        pair, kappa = row.angular_spring(
+            pair, error, jnp.stack(lam[DRIVE : DRIVE + 3]), xi, stiffness_h2, damping_h, torque_bound,
+            flag.ball_drive, h,
+        )  # fmt: skip
+        lam[DRIVE : DRIVE + 3] = list(kappa)
+
+    # Motor: the relative speed along the axle or slide axis, force-limited (SI 2.3.6, 2.4.6).
+    force_bound = joint.motor_max_force * h**2
+    if "angular_motor" in rows:
+        _, axis = _hinge_angle(joint, pair)
+        pair, lam[MOTOR] = row.angular_row(
+            pair, -axis, 0.0, lam[MOTOR], row.motor(xi, flag.angular_motor, target.motor * h, force_bound), h
+        )
+    if "linear_motor" in rows:
+        _, axis, arm_a, arm_b = _slider_travel(joint, flag, pair)
+        pair, lam[MOTOR] = row.positional_row(
+            pair, -axis, arm_a, arm_b, 0.0, lam[MOTOR],
+            row.motor(xi, flag.linear_motor, target.motor * h, force_bound), h,
+        )  # fmt: skip
 
     # Angular lock. Hinge: the axle constraint, angle between the axes (73) along w (75); the
     # update rotates a toward b (78). Slider, fixed: the whole relative rotation (SI (53)),
     # in its rotation-invariant magnitude form so that it conserves angular momentum (DBD 5.1).
-    if ROTATION_LOCK in rows:
+    if "rotation_lock" in rows:
         quat_a, quat_b = pair.current_quats()
         axis_a = math.quat_rotate(quat_a, joint.local_axis_a)
         axis_b = math.quat_rotate(quat_b, joint.local_axis_b)
@@ -126,50 +220,38 @@ def project(
         lock_axis, lock_angle = math.safe_normalize(math.quat_rotate(quat_a, math.quat_log(relative)))
         error = jnp.where(flag.hinge, axle_angle, lock_angle)
         direction = jnp.where(flag.hinge[..., None], -axle_axis, -lock_axis)  # dc/dtheta_a
-        pair, lam[ROTATION_LOCK] = angular_row(
-            pair, direction, error, lam[ROTATION_LOCK], xi, alpha, False,
-            flag.hinge | flag.rotation_locked,
-        )  # fmt: skip
+        pair, lam[ROTATION_LOCK] = row.angular_row(
+            pair, direction, error, lam[ROTATION_LOCK], hard(flag.hinge | flag.rotation_locked)
+        )
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83).
-    # The row direction is the bisector of the two bodies' axes (equal for a hinge).
-    for row, sign in ((ANGLE_LOWER, -1.0), (ANGLE_UPPER, 1.0)):
-        if row not in rows:
-            continue
-        quat_a, quat_b = pair.current_quats()
-        angle = math.quat_twist_angle(_relative_rotation(joint, quat_a, quat_b), joint.local_axis_a)
-        axis, _ = math.safe_normalize(
-            math.quat_rotate(quat_a, joint.local_axis_a) + math.quat_rotate(quat_b, joint.local_axis_b)
-        )
-        error = (angle - joint.lower) if sign < 0 else (joint.upper - angle)
-        pair, lam[row] = angular_row(pair, sign * axis, error, lam[row], xi, alpha, True, flag.has_angle_limits)
+    if "has_angle_limits" in rows:
+        for index, sign in ((ANGLE_LOWER, -1.0), (ANGLE_UPPER, 1.0)):
+            angle, axis = _hinge_angle(joint, pair)
+            error = (angle - joint.lower) if sign < 0 else (joint.upper - angle)
+            pair, lam[index] = row.angular_row(
+                pair, sign * axis, error, lam[index], hard(flag.has_angle_limits, inequality=True)
+            )
 
     # Cone: the angle between the twist axes stays below the limit, DBD (81)-(83).
-    if CONE in rows:
+    if "has_cone" in rows:
         quat_a, quat_b = pair.current_quats()
         cone_angle, cone_axis = math.angle_between(
             math.quat_rotate(quat_a, joint.local_axis_a), math.quat_rotate(quat_b, joint.local_axis_b)
         )
-        pair, lam[CONE] = angular_row(
-            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], xi, alpha, True, flag.has_cone
+        pair, lam[CONE] = row.angular_row(
+            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], hard(flag.has_cone, inequality=True)
         )
 
-    # Slider travel limits, SI (65)-(78): travel d = (p_b - p_a) . axis. Each side acts at the
-    # point of body a level with p_b, so the impulse is parallel to the points' separation.
-    for row, sign, bound in ((TRAVEL_LOWER, -1.0, joint.lower), (TRAVEL_UPPER, 1.0, joint.upper)):
-        if row not in rows:
-            continue
-        quat_a, quat_b = pair.current_quats()
-        delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
-        slide_axis = math.quat_rotate(quat_a, joint.local_axis_a)
-        travel = -math.dot(delta, slide_axis)
-        across = delta + travel[..., None] * slide_axis
-        error = (travel - bound) if sign < 0 else (bound - travel)
-        pair, lam[row] = positional_row(
-            pair, sign * slide_axis, arm_a - across, arm_b, error, lam[row], xi, alpha, True,
-            flag.has_travel_limits,
-        )  # fmt: skip
+    # Slider travel limits, SI (65)-(78), on the travel d = (p_b - p_a) . axis.
+    if "has_travel_limits" in rows:
+        for index, sign, bound in ((TRAVEL_LOWER, -1.0, joint.lower), (TRAVEL_UPPER, 1.0, joint.upper)):
+            travel, axis, arm_a, arm_b = _slider_travel(joint, flag, pair)
+            error = (travel - bound) if sign < 0 else (bound - travel)
+            pair, lam[index] = row.positional_row(
+                pair, sign * axis, arm_a, arm_b, error, lam[index], hard(flag.has_travel_limits, inequality=True)
+            )
 
     # Point constraint last, so the joint gap is what this sweep leaves smallest: the distance
     # between the joint points in the magnitude form (54)-(61) that conserves momentum (62)-(63).
@@ -179,7 +261,6 @@ def project(
     slide_axis = math.quat_rotate(quat_a, joint.local_axis_a)
     along = jnp.where(flag.slider, math.dot(delta, slide_axis), 0.0)[..., None] * slide_axis
     direction, gap = math.safe_normalize(delta - along)
-    pair, lam[POINT] = positional_row(
-        pair, direction, arm_a - along, arm_b, gap, lam[POINT], xi, alpha, False, flag.active
-    )
-    return pair, jnp.stack(lam)
+    pair, lam[POINT] = row.positional_row(pair, direction, arm_a - along, arm_b, gap, lam[POINT], hard(True))
+    dx, dtheta = pair.displacements()
+    return dx, dtheta, jnp.stack(lam)

@@ -3,16 +3,20 @@
 A row is one scalar position error c(X* + dX) with a Jacobian of one of two shapes:
   positional: J = (n, arm_a x n, -n, -arm_b x n)   (DBD (55), (85); SI (69))
   angular:    J = (0, d, 0, -d)                     (DBD (74); SI (109))
-Its update is the non-linear Gauss-Seidel step of DBD (45)-(52) with relaxation xi and
-regularisation alpha, solved for the row's multiplier lambda (the integrated impulse times h, as
-in DBD's lambda dt^2: kg m for positional rows, kg m^2 for angular ones):
+and w = J M~^-1 J^T its effective inverse mass ((51), (57), (76)). A row is solved for its
+multiplier lambda (the integrated impulse times h, DBD's lambda dt^2: kg m for positional rows,
+kg m^2 for angular ones) and moves the bodies by dX += M~^-1 J^T d lambda (52). Three rules:
 
-  w           = J M~^-1 J^T                         effective inverse mass (51), (57), (76)
-  d lambda    = -xi (c + alpha lambda) / (w + alpha)
-  dX_body    += M~^-1 J_body^T d lambda             (52)
-
-which converges to c + alpha lambda = 0, the regularised solution (49). Inequality rows (limits,
-DBD 6.1) only ever push: the increment is clamped to d lambda >= 0 as in (83).
+  rigid   d lambda = -xi (c + alpha lambda) / (w + alpha)            DBD (45)-(52)
+          converges to the regularised c + alpha lambda = 0 (49); inequality rows (limits,
+          DBD 6.1) only push: d lambda >= 0 as in (83).
+  spring  lambda = h^2 f with f = -k c - nu c_dot, implicit (DBD 8, (94)-(99), 8.1):
+          d lambda = -xi (lambda + k h^2 c + nu h drift) / (1 + (k h^2 + nu h) w)
+          where drift = J (h V* + dX) = h c_dot is how far the row moved this substep.
+          Written at X* + dX this is (105); written at the start of the substep, where
+          c(X*) = c(X^t) + J h V*, the velocity term gains the "1 +" of (108)-(109) that XPBD's
+          gamma lacks. The clamp |lambda| <= bound h^2 is the torque limit (114).
+  speed   a motor: drift = target speed h, with |lambda| <= max force h^2 (SI 2.3.6, 2.4.6).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ class BodyPair(NamedTuple):
 
     origin_*: (3,) predicted centre of mass X*. quat_*: (4,) predicted orientation.
     inv_mass_*: () 1/kg (0 for the world). inv_inertia_*: (3, 3) world frame (0 for the world).
+    vel_*, ang_vel_*: (3,) predicted velocities V* (so that X* - X^t = h V*).
     dx_*, dtheta_*: (3,) displacement and rotation accumulated so far this substep.
     """
 
@@ -40,10 +45,24 @@ class BodyPair(NamedTuple):
     inv_mass_b: jnp.ndarray
     inv_inertia_a: jnp.ndarray
     inv_inertia_b: jnp.ndarray
+    vel_a: jnp.ndarray
+    vel_b: jnp.ndarray
+    ang_vel_a: jnp.ndarray
+    ang_vel_b: jnp.ndarray
     dx_a: jnp.ndarray
     dx_b: jnp.ndarray
     dtheta_a: jnp.ndarray
     dtheta_b: jnp.ndarray
+
+    @classmethod
+    def of(cls, bodies: BodySet) -> BodyPair:
+        """The pair view of a two-body `BodySet` (side a is row 0, side b row 1)."""
+        fields = [getattr(bodies, name)[i] for name in BodySet._fields for i in (0, 1)]
+        return cls(*fields)
+
+    def displacements(self) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """(dx (2, 3), dtheta (2, 3)): the pair's displacements in `BodySet` row order."""
+        return jnp.stack([self.dx_a, self.dx_b]), jnp.stack([self.dtheta_a, self.dtheta_b])
 
     def current_quats(self) -> tuple[jnp.ndarray, jnp.ndarray]:
         """Orientations at X* + dX (what the non-linear update of DBD 4.1 evaluates at)."""
@@ -53,13 +72,80 @@ class BodyPair(NamedTuple):
         )
 
 
-def _multiplier_step(error, inverse_mass, multiplier, relaxation, regularization, inequality, active):
-    """d lambda of DBD (46)/(52) with the regularised denominator; 0 where w + alpha is 0."""
-    denominator = inverse_mass + regularization
-    solvable = active & (denominator > 0.0)
-    safe_denominator = jnp.where(solvable, denominator, 1.0)
-    step = -relaxation * (error + regularization * multiplier) / safe_denominator
-    step = jnp.where(inequality, jnp.maximum(step, 0.0), step)
+class BodySet(NamedTuple):
+    """The S bodies one constraint node moves (S = 2 for joints, 4 for a tetrahedron, ...).
+
+    Fields as in `BodyPair`, stacked on a leading axis of S rows.
+    """
+
+    origin: jnp.ndarray  # (S, 3)
+    quat: jnp.ndarray  # (S, 4)
+    inv_mass: jnp.ndarray  # (S,)
+    inv_inertia: jnp.ndarray  # (S, 3, 3)
+    vel: jnp.ndarray  # (S, 3)
+    ang_vel: jnp.ndarray  # (S, 3)
+    dx: jnp.ndarray  # (S, 3)
+    dtheta: jnp.ndarray  # (S, 3)
+
+
+class Rule(NamedTuple):
+    """How a row's multiplier is updated (see the module docstring); all fields are () arrays.
+
+    relaxation xi, regularization alpha, active (bool). inequality (bool): rigid rows only push.
+    stiffness_h2 = k h^2 and damping_h = nu h for springs (both 0 for a rigid row; `spring`
+    switches to the spring rule). bound: |lambda| <= bound (inf for none). speed_h: a motor's
+    target drift (target speed times h); `speed` switches to the motor rule.
+    """
+
+    relaxation: jnp.ndarray
+    regularization: jnp.ndarray
+    active: jnp.ndarray
+    inequality: bool | jnp.ndarray = False
+    spring: bool = False
+    stiffness_h2: jnp.ndarray | float = 0.0
+    damping_h: jnp.ndarray | float = 0.0
+    speed: bool = False
+    speed_h: jnp.ndarray | float = 0.0
+    bound: jnp.ndarray | float = jnp.inf
+
+
+def rigid(relaxation, regularization, active, inequality=False) -> Rule:
+    """A hard row: joints, limits, distance constraints."""
+    return Rule(relaxation, regularization, active, inequality)
+
+
+def spring(relaxation, active, stiffness_h2, damping_h, bound=jnp.inf) -> Rule:
+    """An implicit spring/damper row (DBD 8.1, 9): stiffness k h^2, damping nu h, |lambda| <= bound."""
+    return Rule(relaxation, 0.0, active, spring=True, stiffness_h2=stiffness_h2, damping_h=damping_h, bound=bound)
+
+
+def motor(relaxation, active, speed_h, bound) -> Rule:
+    """A velocity row: drift -> speed_h with |lambda| <= bound (SI 2.3.6, 2.4.6)."""
+    return Rule(relaxation, 0.0, active, speed=True, speed_h=speed_h, bound=bound)
+
+
+def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
+    """d lambda of one row under `rule`; 0 where the row is inactive or cannot move anything.
+
+    error: c at X* + dX. drift: J (h V* + dX) (only the spring and motor rules read it).
+    inverse_mass: w = J M~^-1 J^T. multiplier: lambda so far this substep.
+    """
+    if rule.spring:
+        compliance = rule.stiffness_h2 + rule.damping_h
+        denominator = 1.0 + compliance * inverse_mass
+        residual = multiplier + rule.stiffness_h2 * error + rule.damping_h * drift
+        solvable = rule.active & (inverse_mass > 0.0)
+    elif rule.speed:
+        denominator = inverse_mass
+        residual = drift - rule.speed_h
+        solvable = rule.active & (inverse_mass > 0.0)
+    else:
+        denominator = inverse_mass + rule.regularization
+        residual = error + rule.regularization * multiplier
+        solvable = rule.active & (denominator > 0.0)
+    step = -rule.relaxation * residual / jnp.where(solvable, denominator, 1.0)
+    step = jnp.where(rule.inequality, jnp.maximum(step, 0.0), step)
+    step = jnp.clip(multiplier + step, -rule.bound, rule.bound) - multiplier
     return jnp.where(solvable, step, 0.0)
 
 
@@ -70,13 +156,12 @@ def positional_row(
     arm_b: jnp.ndarray,
     error: jnp.ndarray,
     multiplier: jnp.ndarray,
-    relaxation: jnp.ndarray,
-    regularization: jnp.ndarray,
-    inequality: bool | jnp.ndarray,
-    active: jnp.ndarray,
+    rule: Rule,
+    h: float = 1.0,
 ) -> tuple[BodyPair, jnp.ndarray]:
     """Project one positional row: error c along unit `direction` (dc/dx_a), applied at arm_a
-    from a's centre and arm_b from b's. Returns the moved pair and the new multiplier."""
+    from a's centre and arm_b from b's. h: the substep (read by the spring and motor rules).
+    Returns the moved pair and the new multiplier."""
     torque_a = math.cross(arm_a, direction)
     torque_b = math.cross(arm_b, direction)
     turn_a = math.matvec(pair.inv_inertia_a, torque_a)
@@ -84,7 +169,14 @@ def positional_row(
     inverse_mass = (
         pair.inv_mass_a + pair.inv_mass_b + math.dot(torque_a, turn_a) + math.dot(torque_b, turn_b)
     )  # (57) projected on the direction, (56)
-    step = _multiplier_step(error, inverse_mass, multiplier, relaxation, regularization, inequality, active)
+    drift = 0.0
+    if rule.spring or rule.speed:
+        drift = (
+            math.dot(direction, h * (pair.vel_a - pair.vel_b) + (pair.dx_a - pair.dx_b))
+            + math.dot(torque_a, h * pair.ang_vel_a + pair.dtheta_a)
+            - math.dot(torque_b, h * pair.ang_vel_b + pair.dtheta_b)
+        )
+    step = multiplier_step(rule, error, drift, inverse_mass, multiplier)
     moved = pair._replace(
         dx_a=pair.dx_a + (pair.inv_mass_a * step) * direction,
         dx_b=pair.dx_b - (pair.inv_mass_b * step) * direction,
@@ -99,18 +191,55 @@ def angular_row(
     direction: jnp.ndarray,
     error: jnp.ndarray,
     multiplier: jnp.ndarray,
-    relaxation: jnp.ndarray,
-    regularization: jnp.ndarray,
-    inequality: bool | jnp.ndarray,
-    active: jnp.ndarray,
+    rule: Rule,
+    h: float = 1.0,
 ) -> tuple[BodyPair, jnp.ndarray]:
     """Project one angular row: error c (rad) with dc/dtheta_a = `direction` = -dc/dtheta_b."""
     turn_a = math.matvec(pair.inv_inertia_a, direction)
     turn_b = math.matvec(pair.inv_inertia_b, direction)
     inverse_mass = math.dot(direction, turn_a) + math.dot(direction, turn_b)  # (76)
-    step = _multiplier_step(error, inverse_mass, multiplier, relaxation, regularization, inequality, active)
+    drift = 0.0
+    if rule.spring or rule.speed:
+        drift = math.dot(direction, h * (pair.ang_vel_a - pair.ang_vel_b) + (pair.dtheta_a - pair.dtheta_b))
+    step = multiplier_step(rule, error, drift, inverse_mass, multiplier)
     moved = pair._replace(
         dtheta_a=pair.dtheta_a + step * turn_a,
         dtheta_b=pair.dtheta_b - step * turn_b,
+    )
+    return moved, multiplier + step
+
+
+def angular_spring(
+    pair: BodyPair,
+    error: jnp.ndarray,
+    multiplier: jnp.ndarray,
+    relaxation: jnp.ndarray,
+    stiffness_h2: jnp.ndarray,
+    damping_h: jnp.ndarray,
+    bound: jnp.ndarray,
+    active: jnp.ndarray,
+    h: float,
+) -> tuple[BodyPair, jnp.ndarray]:
+    """A three-axis angular spring/damper with a torque limit, DBD (110)-(114).
+
+    error: (3,) world rotation vector of b away from its target relative to a (dc/dtheta_b = 1,
+    dc/dtheta_a = -1). multiplier: (3,) kappa so far (the torque on b times h^2). The update is
+    the matrix form of the spring rule with the effective inverse inertia W = I_a^-1 + I_b^-1
+    (113): d kappa = -xi (1 + (k h^2 + nu h) W)^-1 (kappa + k h^2 c + nu h drift) (112); then
+    |kappa| <= bound = tau_max h^2 (114).
+    """
+    inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b  # (113)
+    drift = h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a)
+    residual = multiplier + stiffness_h2 * error + damping_h * drift
+    system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
+    candidate = multiplier - relaxation * math.matvec(math.inverse3(system), residual)
+    direction, size = math.safe_normalize(candidate)
+    limited = jnp.isfinite(bound)  # an unlimited drive stores bound = inf: keep inf out of the products
+    finite_bound = jnp.where(limited, bound, 0.0)
+    candidate = jnp.where(limited & (size > finite_bound), finite_bound * direction, candidate)  # (114)
+    step = jnp.where(active, candidate - multiplier, 0.0)
+    moved = pair._replace(
+        dtheta_a=pair.dtheta_a - math.matvec(pair.inv_inertia_a, step),
+        dtheta_b=pair.dtheta_b + math.matvec(pair.inv_inertia_b, step),
     )
     return moved, multiplier + step

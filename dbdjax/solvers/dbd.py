@@ -1,27 +1,27 @@
 """DBD Algorithm 1: non-linear Gauss-Seidel over colour groups.
 
-    prepare:  inverse masses and world inverse inertias at X* (once per substep)
+    prepare:  inverse masses and world inverse inertias at X* (once per substep), and each
+              colour's constraint parameters gathered into its own arrays
     repeat `iterations` times:                                   (lax.scan)
-        for each colour, in order:                               (lax.scan)
-            project every joint of the colour at once            (jax.vmap, joints.project)
-            write back the displacements of the bodies it moved  (a gather: no conflicts)
+        for each colour, in order:                               (unrolled: a model has few)
+            for each constraint family present in the colour:
+                project all its nodes at once                    (jax.vmap, constraints/*.py)
+            write back the displacements of the bodies moved     (one gather: no conflicts)
 
 Only displacements dX from X* are accumulated; the caller applies them with (36)-(39).
-With `jacobi`, all joints are projected at once from the same dX and each body moves by the
-average of what its joints ask (for comparison; it converges more slowly).
+With `jacobi`, every node is projected at once from the same dX and each body moves by the
+average of what its nodes ask (for comparison; it converges more slowly).
 """
 
 from __future__ import annotations
-
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import integrator
-from dbdjax.constraints import joints as joint_family
-from dbdjax.constraints.rows import BodyPair
+from dbdjax import constraints, integrator
+from dbdjax.constraints import Family
+from dbdjax.constraints.rows import BodySet
 from dbdjax.model import Model, State
 
 
@@ -31,85 +31,78 @@ def _with_world_row(array: jnp.ndarray, world_value: jnp.ndarray | float = 0.0) 
     return jnp.concatenate([array, row], axis=0)
 
 
-def _joint_layout(model: Model, joint_of_slot: np.ndarray):
-    """Joint parameters and flags rearranged into the slot layout (..., K) of the solver."""
-    structure = model.structure
-    padded = jax.tree.map(lambda x: jnp.concatenate([x, x[:1]], axis=0), model.joints)
-    params = jax.tree.map(lambda x: x[joint_of_slot], padded)
-    flags = joint_family.flags(structure)
-    flags = joint_family.JointFlags(*(np.append(f, False)[joint_of_slot] for f in flags))
-    world = structure.num_bodies
-    body_a = np.append(structure.joint_body_a.array, world)[joint_of_slot]
-    body_b = np.append(structure.joint_body_b.array, world)[joint_of_slot]
-    return params, flags, body_a, body_b
+def solve(model: Model, predicted: State, control: jnp.ndarray | None, h: float) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Displacement (N, 3) and rotation (N, 3) that satisfy the constraints from the prediction X*.
 
-
-def solve(model: Model, predicted: State, h: float) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Displacement (N, 3) and rotation (N, 3) that satisfy the joints from the prediction X*."""
+    control: (num_controls,) or None, the drive and motor targets of this step. h: substep (s).
+    """
     structure, options = model.structure, model.options
     n = structure.num_bodies
-    zeros = jnp.zeros((n + 1, 3), predicted.pos.dtype)
-    if structure.num_joints == 0:
+    dtype = predicted.pos.dtype
+    zeros = jnp.zeros((n + 1, 3), dtype)
+    all_families = constraints.families(model, control, h, dtype)
+    if not any(len(f.bodies) for f in all_families):
         return zeros[:n], zeros[:n]
 
-    identity = jnp.array([1.0, 0.0, 0.0, 0.0], predicted.quat.dtype)
-    origin = _with_world_row(predicted.pos)
-    quat = _with_world_row(predicted.quat, identity)
-    inv_mass = _with_world_row(1.0 / model.bodies.mass)
-    inv_inertia = _with_world_row(integrator.inverse_inertia(model, predicted, h))
+    identity = jnp.array([1.0, 0.0, 0.0, 0.0], dtype)
+    table = BodySet(
+        origin=_with_world_row(predicted.pos),
+        quat=_with_world_row(predicted.quat, identity),
+        inv_mass=_with_world_row(1.0 / model.bodies.mass),
+        inv_inertia=_with_world_row(integrator.inverse_inertia(model, predicted, h)),
+        vel=_with_world_row(predicted.vel),
+        ang_vel=_with_world_row(predicted.ang_vel),
+        dx=zeros,
+        dtheta=zeros,
+    )
 
-    project = functools.partial(joint_family.project, rows=joint_family.rows_in_use(structure))
+    def project(family: Family, dx, dtheta, multipliers):
+        """Every node of `family` at once: moved rows (M * S, 3) twice, and new multipliers."""
+        bodies = table._replace(dx=dx, dtheta=dtheta)
+        bodies = jax.tree.map(lambda column: column[family.bodies], bodies)  # (M, S, ...)
+        moved_dx, moved_dtheta, multipliers = jax.vmap(family.project)(
+            family.params, family.static, bodies, multipliers
+        )
+        return moved_dx.reshape(-1, 3), moved_dtheta.reshape(-1, 3), multipliers
 
-    def project_slots(params, flags, body_a, body_b, dx, dtheta, multipliers):
-        pair = BodyPair(
-            origin[body_a], origin[body_b], quat[body_a], quat[body_b],
-            inv_mass[body_a], inv_mass[body_b], inv_inertia[body_a], inv_inertia[body_b],
-            dx[body_a], dx[body_b], dtheta[body_a], dtheta[body_b],
-        )  # fmt: skip
-        moved, multipliers = jax.vmap(project)(params, flags, pair, multipliers)
-        return pair, moved, multipliers
+    def zero_multipliers(groups):
+        return [jnp.zeros((len(f.bodies), f.num_multipliers), dtype) for f in groups]
 
     if options.jacobi:
-        joint_of_slot = np.arange(structure.num_joints)
-        params, flags, body_a, body_b = _joint_layout(model, joint_of_slot)
-        count = np.bincount(np.concatenate([body_a, body_b]), minlength=n + 1)
-        share = jnp.asarray(1.0 / np.maximum(count, 1), predicted.pos.dtype)[:, None]
+        groups = [f for f in all_families if len(f.bodies)]
+        touched = np.concatenate([f.bodies.reshape(-1) for f in groups])
+        share = jnp.asarray(1.0 / np.maximum(np.bincount(touched, minlength=n + 1), 1), dtype)[:, None]
 
         def iteration(carry, _):
             dx, dtheta, multipliers = carry
-            pair, moved, multipliers = project_slots(params, flags, body_a, body_b, dx, dtheta, multipliers)
+            moved = [project(f, dx, dtheta, lam) for f, lam in zip(groups, multipliers, strict=True)]
+            before = jax.tree.map(lambda column: column[touched], (dx, dtheta))
+            dx_rows = jnp.concatenate([m[0] for m in moved]) - before[0]
+            dtheta_rows = jnp.concatenate([m[1] for m in moved]) - before[1]
+            dx = dx + jax.ops.segment_sum(dx_rows, touched, n + 1) * share
+            dtheta = dtheta + jax.ops.segment_sum(dtheta_rows, touched, n + 1) * share
+            return (dx, dtheta, [m[2] for m in moved]), None
 
-            def averaged(side_a, side_b):
-                total = jax.ops.segment_sum(side_a, body_a, n + 1) + jax.ops.segment_sum(side_b, body_b, n + 1)
-                return total * share
-
-            dx = dx + averaged(moved.dx_a - pair.dx_a, moved.dx_b - pair.dx_b)
-            dtheta = dtheta + averaged(moved.dtheta_a - pair.dtheta_a, moved.dtheta_b - pair.dtheta_b)
-            return (dx, dtheta, multipliers), None
-
-        multipliers = jnp.zeros((structure.num_joints, joint_family.NUM_ROWS), predicted.pos.dtype)
+        multipliers = zero_multipliers(groups)
     else:
-        joint_of_slot = structure.colour_joint.array  # (C, K)
-        params, flags, body_a, body_b = _joint_layout(model, joint_of_slot)
-        body_slot = structure.colour_body_slot.array  # (C, N + 1)
-
-        def colour_sweep(carry, colour):
-            dx, dtheta = carry
-            params_c, flags_c, body_a_c, body_b_c, body_slot_c, multipliers = colour
-            _, moved, multipliers = project_slots(params_c, flags_c, body_a_c, body_b_c, dx, dtheta, multipliers)
-            dx = jnp.concatenate([moved.dx_a, moved.dx_b, dx])[body_slot_c]
-            dtheta = jnp.concatenate([moved.dtheta_a, moved.dtheta_b, dtheta])[body_slot_c]
-            return (dx, dtheta), multipliers
+        colours = [
+            [constraints.gather(f, nodes.array) for f, nodes in zip(all_families, colour.nodes, strict=True)
+             if len(nodes.array)]
+            for colour in structure.colours
+        ]  # fmt: skip
 
         def iteration(carry, _):
             dx, dtheta, multipliers = carry
-            colours = (params, flags, body_a, body_b, body_slot, multipliers)
-            # Colours are unrolled (a model has few; a while loop per colour costs more on CPU
-            # than the colour's work); iterations stay a loop so compile time does not grow.
-            (dx, dtheta), multipliers = jax.lax.scan(colour_sweep, (dx, dtheta), colours, unroll=True)
-            return (dx, dtheta, multipliers), None
+            updated = []
+            for groups, colour, lams in zip(colours, structure.colours, multipliers, strict=True):
+                moved = [project(f, dx, dtheta, lam) for f, lam in zip(groups, lams, strict=True)]
+                slot = colour.body_slot.array
+                dx = jnp.concatenate([m[0] for m in moved] + [dx])[slot]
+                dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta])[slot]
+                updated.append([m[2] for m in moved])
+            return (dx, dtheta, updated), None
 
-        multipliers = jnp.zeros(joint_of_slot.shape + (joint_family.NUM_ROWS,), predicted.pos.dtype)
+        multipliers = [zero_multipliers(groups) for groups in colours]
 
     (dx, dtheta, _), _ = jax.lax.scan(iteration, (zeros, zeros, multipliers), None, length=options.iterations)
     return dx[:n], dtheta[:n]
