@@ -25,12 +25,6 @@ def relative_error(a, b):
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / max(np.linalg.norm(np.asarray(b)), 1e-12))
 
 
-@pytest.fixture
-def float64():
-    with jax.enable_x64(True):
-        yield
-
-
 def swinging_chain(**finalize):
     """A 3-link chain thrown with generic velocities.
 
@@ -134,3 +128,95 @@ def test_no_nan_gradient_at_singular_configurations(kind):
     state_gradient, model_gradient = jax.jit(jax.grad(loss, argnums=(0, 1)))(start, model)
     for leaf in jax.tree.leaves((state_gradient, model_gradient)):
         assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+def driven_arm():
+    """Upper arm on a driven ball joint to the world, forearm on a driven hinge (elbow)."""
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    upper = b.add_body(pos=(0.15, 0, 0), mass=1.0, inertia=(0.002, 0.008, 0.008))
+    fore = b.add_body(pos=(0.45, 0, 0), mass=0.6, inertia=(0.001, 0.005, 0.005))
+    shoulder = b.add_ball_joint(dbd.WORLD, upper, anchor=(0, 0, 0))
+    elbow = b.add_hinge_joint(upper, fore, anchor=(0.3, 0, 0), axis=(0, 1, 0))
+    b.add_drive(shoulder, stiffness=40.0, damping=4.0)
+    b.add_drive(elbow, stiffness=20.0, damping=2.0)
+    return b.finalize(dt=1 / 60, substeps=2, iterations=6)
+
+
+def test_gradient_of_tracking_loss_wrt_drive_targets_and_stiffness(float64):
+    model = driven_arm()
+    steps = 15
+    controls = jnp.asarray(np.random.default_rng(3).normal(scale=0.3, size=(steps, model.num_controls)))
+    goal = jnp.array([0.3, 0.2, -0.3])
+
+    def loss(controls, stiffness):
+        joints = dataclasses.replace(model.joints, drive_stiffness=stiffness)
+        _, trajectory = dbd.rollout(dataclasses.replace(model, joints=joints), dbd.init(model), controls)
+        tip = trajectory.pos[:, 1] + math_rotate(trajectory.quat[:, 1], jnp.array([0.15, 0.0, 0.0]))
+        return jnp.sum((tip - goal) ** 2)
+
+    stiffness = model.joints.drive_stiffness
+    analytic_controls, analytic_stiffness = jax.jit(jax.grad(loss, argnums=(0, 1)))(controls, stiffness)
+    numeric_controls = central_difference(jax.jit(lambda c: loss(c, stiffness)), controls)
+    numeric_stiffness = central_difference(jax.jit(lambda k: loss(controls, k)), stiffness)
+    print(f"\ndriven arm: relative error d/d controls {relative_error(analytic_controls, numeric_controls):.2e}, "
+          f"d/d stiffness {relative_error(analytic_stiffness, numeric_stiffness):.2e}")
+    assert relative_error(analytic_controls, numeric_controls) < 1e-4
+    assert relative_error(analytic_stiffness, numeric_stiffness) < 1e-4
+
+
+def math_rotate(quat, vector):
+    return dbd.math.quat_rotate(quat, vector)
+
+
+def soft_scene():
+    """A spring, a rope and a tetrahedron's volume in one model, thrown with generic velocities."""
+    rng = np.random.default_rng(11)
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    corners = [(0.0, 0.0, 0.0), (0.3, 0.0, 0.0), (0.15, 0.26, 0.0), (0.15, 0.09, 0.25)]
+    nodes = [b.add_body(pos=c, mass=0.5, inertia=(1e-3,) * 3, vel=rng.normal(scale=0.3, size=3)) for c in corners]
+    b.add_spring(dbd.WORLD, nodes[3], (0.15, 0.09, 0.6), corners[3], stiffness=80.0, damping=1.0, rest_length=0.3)
+    b.add_rope(nodes[:3], length=0.55)
+    b.add_volume(nodes)
+    return b.finalize(dt=1 / 60, iterations=6)
+
+
+@pytest.mark.parametrize(
+    "family, field",
+    [("springs", "stiffness"), ("springs", "damping"), ("springs", "rest_length"), ("ropes", "length"),
+     ("volumes", "rest_volume")],
+)  # fmt: skip
+def test_gradient_wrt_spring_rope_and_volume_parameters(float64, family, field):
+    model = soft_scene()
+
+    def loss(value):
+        part = dataclasses.replace(getattr(model, family), **{field: value})
+        final, _ = dbd.rollout(dataclasses.replace(model, **{family: part}), dbd.init(model), steps=20)
+        return jnp.sum(final.pos[:, 2] * jnp.arange(1.0, 5.0)) + jnp.sum(final.pos[:, 0])
+
+    value = getattr(getattr(model, family), field)
+    analytic = jax.jit(jax.grad(loss))(value)
+    numeric = central_difference(jax.jit(loss), value)
+    assert np.all(np.isfinite(np.asarray(analytic)))
+    assert relative_error(analytic, numeric) < 1e-4
+
+
+def test_gradient_wrt_user_force_parameters(float64):
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    body = b.add_body(pos=(0.2, 0.1, 0), mass=1.0, inertia=(0.01, 0.02, 0.03), vel=(0.3, -0.2, 0.5))
+
+    def drag(pos, quat, vel, ang_vel, params):
+        speed = dbd.math.safe_norm(vel)[:, None]
+        return -params["linear"] * vel - params["quadratic"] * speed * vel - params["spring"] * pos, -0.1 * ang_vel
+
+    b.add_force([body], drag, params={"linear": 0.5, "quadratic": 0.2, "spring": 20.0})
+    model = b.finalize(dt=1 / 60, iterations=4)
+
+    def loss(params):
+        final, _ = dbd.rollout(dataclasses.replace(model, forces=(params,)), dbd.init(model), steps=30)
+        return jnp.sum(final.pos * jnp.array([1.0, 2.0, 3.0]))
+
+    params = model.forces[0]
+    analytic = jax.jit(jax.grad(loss))(params)
+    for name in params:
+        numeric = central_difference(jax.jit(lambda v, n=name: loss({**params, n: v})), params[name])
+        assert relative_error(analytic[name], numeric) < 1e-4, name
