@@ -158,8 +158,10 @@ def test_gradient_of_tracking_loss_wrt_drive_targets_and_stiffness(float64):
     analytic_controls, analytic_stiffness = jax.jit(jax.grad(loss, argnums=(0, 1)))(controls, stiffness)
     numeric_controls = central_difference(jax.jit(lambda c: loss(c, stiffness)), controls)
     numeric_stiffness = central_difference(jax.jit(lambda k: loss(controls, k)), stiffness)
-    print(f"\ndriven arm: relative error d/d controls {relative_error(analytic_controls, numeric_controls):.2e}, "
-          f"d/d stiffness {relative_error(analytic_stiffness, numeric_stiffness):.2e}")
+    print(
+        f"\ndriven arm: relative error d/d controls {relative_error(analytic_controls, numeric_controls):.2e}, "
+        f"d/d stiffness {relative_error(analytic_stiffness, numeric_stiffness):.2e}"
+    )
     assert relative_error(analytic_controls, numeric_controls) < 1e-4
     assert relative_error(analytic_stiffness, numeric_stiffness) < 1e-4
 
