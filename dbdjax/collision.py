@@ -440,11 +440,11 @@ def _deepest_in_box(c, u, half_length, half):
         1.0 - b * b > _PARALLEL_SIN2, _safe_divide(b * w_along - w_dot_u, 1.0 - b * b, _PARALLEL_SIN2), -w_dot_u
     )
     # face plane m: side_m * (c + t u)[axis_m] - half[axis_m]; kink where two of them are equal
-    face_select = jnp.asarray(_FACE_SELECT, c.dtype)
-    offsets = _FACE_SIDE * dot(face_select, c) - dot(face_select, half)
-    slopes = _FACE_SIDE * dot(face_select, u)
+    face_select, face_side = jnp.asarray(_FACE_SELECT, c.dtype), jnp.asarray(_FACE_SIDE, c.dtype)
+    offsets = face_side * dot(face_select, c) - dot(face_select, half)
+    slopes = face_side * dot(face_select, u)
     difference = jnp.asarray(_PAIR_DIFFERENCE, c.dtype)
-    t_kink = _safe_divide(difference @ offsets, -(difference @ slopes), _PARALLEL_COMPONENT)
+    t_kink = _safe_divide(jnp.sum(difference * offsets, -1), -jnp.sum(difference * slopes, -1), _PARALLEL_COMPONENT)
     ends = jnp.stack([-half_length, half_length]).astype(c.dtype)
     candidates = jnp.clip(jnp.concatenate([ends, t_edge, t_vertex, t_kink]), -half_length, half_length)
     depth = _box_sdf(c + candidates[:, None] * u, half)
