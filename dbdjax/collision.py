@@ -5,14 +5,18 @@ Every pair function works on one pair (no batch axis; the engine vmaps it) and r
 
     pair                 P   slots
     plane-sphere         1   the sphere's lowest point
-    plane-capsule        2   the two end spheres
-    plane-box            8   the eight corners, in a fixed order
+    plane-capsule        2   the two end spheres (slot 0: local -z end, slot 1: +z end)
+    plane-box            8   the eight corners, in a fixed order (_CORNER_SIGNS)
     sphere-sphere        1
     sphere-capsule       1
     sphere-box           1
-    capsule-capsule      2   deepest pair of axis points + the far end of the overlap (parallel)
-    capsule-box          2   deepest axis point + far end of the part above the reference face
-    box-box              8   face clipping (<= 8 polygon vertices) or one edge-edge point
+    capsule-capsule      2   deepest pair of axis points; for parallel axes (|sin| < 0.02) both
+                             ends of their overlap
+    capsule-box          2   deepest axis point; for an axis parallel to a face (|sin| < 0.02)
+                             both ends of the part of the axis over that face
+    box-box              8   face contact: vertices of the clipped contact polygon (<= 8), in a
+                             fixed order; edge contact: one point; plus the nearest corner pair
+                             when the boxes are apart across a corner
 
 Conventions (shared by all pairs, the contact constraint of DBD (84) with i = b, j = a):
 
@@ -23,6 +27,16 @@ Conventions (shared by all pairs, the contact constraint of DBD (84) with i = b,
 - `active` (P,) is True where the slot holds a point for this configuration AND
   `distance < margin` (margin >= 0, metres: speculative contacts).
 - For plane pairs a is the plane; the plane is {x : n . x = d}, solid where n . x < d.
+- Slots that are not active still hold finite numbers (meaningless where the slot is invalid).
+- Depth semantics: for sphere, capsule and box pairs the deepest distance is the exact signed
+  distance (the gap apart, minus the minimum translation distance overlapping). Capsule-box
+  defines it by the deepest point of the capsule axis (box SDF along the axis, minus the radius),
+  which is the same until the axis itself enters the box. Every capsule slot is a sphere of the
+  capsule at an axis point against the other shape: when the axis is inside the box (penetration
+  deeper than the radius) and the box normal there is not perpendicular to the axis, point_a is on
+  that sphere rather than on the capsule's outer surface.
+- A penetrating box-box edge-edge point whose closest points sit at an edge end keeps its two surface points
+  and the edge-axis normal, so point_b = point_a + distance * normal holds only along the normal.
 
 Shapes are given by their world pose: position (3,) and unit quaternion (4,) in (w, x, y, z),
 already composed from the body pose and the shape's local pose. A capsule's axis is its local z
@@ -31,9 +45,10 @@ that centre, so precision does not degrade far from the world origin more than i
 
 Differentiability: every normalisation or division that can meet zero uses the double-`where`
 form, so values and gradients are finite at coincident centres, parallel axes, aligned faces and
-identical poses. Discrete choices (which face, which slot) are `argmax`/`argmin` with ties going to
-the first index and hysteresis-free but biased tolerances, so a box resting on a box or a plane
-gets the same slots frame after frame.
+identical poses. Discrete choices (which face, which slot) go to the first index on ties and use
+biased tolerances (no hysteresis, no state), so a box resting on a box or a plane gets the same
+slots frame after frame. Discrete picks are one-hot masks and masked sums rather than argmax and
+gathers: under vmap and grad those become scatters that compile and run slowly on CPU.
 
 `collide(kind_a, kind_b, size_a, pos_a, quat_a, size_b, pos_b, quat_b, margin)` dispatches on
 static kinds PLANE, SPHERE, CAPSULE, BOX with one uniform signature; `num_points(kind_a, kind_b)`
@@ -148,7 +163,7 @@ def _max3(v: jnp.ndarray) -> jnp.ndarray:
     return jnp.maximum(jnp.maximum(v[..., 0], v[..., 1]), v[..., 2])
 
 
-def dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+def _dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """Dot product over the last axis as one reduction.
 
     math.dot's component-wise form fuses in the solver, but here, over arrays of candidate points,
@@ -157,8 +172,8 @@ def dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     return jnp.sum(a * b, axis=-1)
 
 
-def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
-    """matrix (..., 3, 3) times vector (..., 3), as a reduction (see `dot`)."""
+def _matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
+    """matrix (..., 3, 3) times vector (..., 3), as a reduction (see `_dot`)."""
     return jnp.sum(matrix * vector[..., None, :], axis=-1)
 
 
@@ -214,7 +229,7 @@ def _point_box(x: jnp.ndarray, half: jnp.ndarray):
     clamped = jnp.clip(x, -half, half)
     normal_out, distance_out = safe_normalize(x - clamped)
     on_k = _first_max3(q)
-    sign = jnp.where(dot(jnp.where(on_k, x, 0.0), jnp.ones_like(x)) >= 0.0, 1.0, -1.0)[..., None]
+    sign = jnp.where(jnp.sum(jnp.where(on_k, x, 0.0), axis=-1, keepdims=True) >= 0.0, 1.0, -1.0)
     point_in = jnp.where(on_k, sign * half, x)
     normal_in = jnp.where(on_k, sign, 0.0).astype(x.dtype)
     return (
@@ -237,7 +252,7 @@ def _box_sdf(x: jnp.ndarray, half: jnp.ndarray) -> jnp.ndarray:
 
 def _plane_points(normal, offset, points_b, depth_offset, valid, margin) -> Contacts:
     """Points of b given as deepest points `points_b` (P, 3) against the plane n . x = offset."""
-    distance = dot(points_b, normal) - offset - depth_offset
+    distance = _dot(points_b, normal) - offset - depth_offset
     point_b = points_b - depth_offset[..., None] * normal
     point_a = points_b - (distance + depth_offset)[..., None] * normal
     normals = jnp.broadcast_to(normal, point_b.shape)
@@ -301,7 +316,7 @@ def sphere_capsule(pos_a, radius_a, pos_b, quat_b, radius_b, half_length_b, marg
     """
     axis = _z_axis(quat_b)
     d = pos_b - pos_a  # capsule centre relative to the sphere centre
-    t = jnp.clip(-dot(axis, d), -half_length_b, half_length_b)
+    t = jnp.clip(-_dot(axis, d), -half_length_b, half_length_b)
     closest = d + t * axis
     point_a, point_b, normal, distance = _sphere_pair(0.0 * d, radius_a, closest, radius_b, _any_perpendicular(axis))
     return _make(
@@ -324,7 +339,7 @@ def sphere_box(pos_a, radius_a, pos_b, quat_b, half_extents_b, margin) -> Contac
     pos_a (3,), radius_a m, pos_b (3,), quat_b (4,), half_extents_b (3,) m, margin m.
     """
     axes = _axes(quat_b)
-    x = matvec(axes, pos_a - pos_b)
+    x = _matvec(axes, pos_a - pos_b)
     point_a, point_b, normal, distance = _sphere_box_local(x, radius_a, half_extents_b)
     return _make(
         (pos_b + _to_world(axes, point_a))[None],
@@ -363,9 +378,9 @@ def _closest_on_segments(d, u_a, half_a, u_b, half_b):
     map s to t (t = clip(b s + f)), and the shadow [lo, hi] of segment b on segment a. Exactly
     parallel segments give s* = lo (deterministic). Ericson, Real-Time Collision Detection 5.1.9.
     """
-    b = dot(u_a, u_b)
-    c = -dot(u_a, d)  # u_a . (centre_a - centre_b)
-    f = -dot(u_b, d)  # u_b . (centre_a - centre_b)
+    b = _dot(u_a, u_b)
+    c = -_dot(u_a, d)  # u_a . (centre_a - centre_b)
+    f = -_dot(u_b, d)  # u_b . (centre_a - centre_b)
     spread = half_b * jnp.abs(b)
     lo = jnp.clip(-c - spread, -half_a, half_a)
     hi = jnp.clip(-c + spread, -half_a, half_a)
@@ -429,20 +444,20 @@ def _deepest_in_box(c, u, half_length, half):
     candidates are evaluated exactly; ties go to the first (ends first).
     """
     vertices = jnp.asarray(_CORNER_SIGNS, c.dtype) * half
-    t_vertex = dot(vertices - c, u)
+    t_vertex = _dot(vertices - c, u)
     midpoints = jnp.asarray(_EDGE_MIDPOINT_SIGNS, c.dtype) * half
     w = c - midpoints
     edge_select = jnp.asarray(_EDGE_SELECT, c.dtype)
-    b = dot(edge_select, u)
-    w_along = dot(edge_select, w)
-    w_dot_u = dot(w, u)
+    b = _dot(edge_select, u)
+    w_along = _dot(edge_select, w)
+    w_dot_u = _dot(w, u)
     t_edge = jnp.where(
         1.0 - b * b > _PARALLEL_SIN2, _safe_divide(b * w_along - w_dot_u, 1.0 - b * b, _PARALLEL_SIN2), -w_dot_u
     )
     # face plane m: side_m * (c + t u)[axis_m] - half[axis_m]; kink where two of them are equal
     face_select, face_side = jnp.asarray(_FACE_SELECT, c.dtype), jnp.asarray(_FACE_SIDE, c.dtype)
-    offsets = face_side * dot(face_select, c) - dot(face_select, half)
-    slopes = face_side * dot(face_select, u)
+    offsets = face_side * _dot(face_select, c) - _dot(face_select, half)
+    slopes = face_side * _dot(face_select, u)
     difference = jnp.asarray(_PAIR_DIFFERENCE, c.dtype)
     t_kink = _safe_divide(jnp.sum(difference * offsets, -1), -jnp.sum(difference * slopes, -1), _PARALLEL_COMPONENT)
     ends = jnp.stack([-half_length, half_length]).astype(c.dtype)
@@ -480,8 +495,8 @@ def capsule_box(pos_a, quat_a, radius_a, half_length_a, pos_b, quat_b, half_exte
     half_extents_b (3,) m, margin m.
     """
     axes = _axes(quat_b)
-    u = matvec(axes, _z_axis(quat_a))
-    c = matvec(axes, pos_a - pos_b)
+    u = _matvec(axes, _z_axis(quat_a))
+    c = _matvec(axes, pos_a - pos_b)
     half = half_extents_b
     star = _deepest_in_box(c, u, half_length_a, half)
     _, outward, star_depth = _point_box(c + star * u, half)
@@ -534,7 +549,7 @@ def _face_manifold(n, centre_r, axes_r, half_r, k, centre_i, axes_i, half_i, tol
     ku, kv = jnp.roll(k, 1), jnp.roll(k, 2)  # one-hot of (k + 1) % 3 and (k + 2) % 3
     u_r, v_r, a, b = _select(axes_r, ku), _select(axes_r, kv), _select(half_r, ku), _select(half_r, kv)
     face_r = centre_r + _select(half_r, k) * n
-    along = matvec(axes_i, n)
+    along = _matvec(axes_i, n)
     j = _first_max3(jnp.abs(along))
     side_i = jnp.where(_select(along, j) > 0.0, -1.0, 1.0)  # the incident face looks back at R
     normal_i = side_i * _select(axes_i, j)
@@ -544,8 +559,8 @@ def _face_manifold(n, centre_r, axes_r, half_r, k, centre_i, axes_i, half_i, tol
     signs = jnp.asarray(_QUAD_SIGNS, n.dtype)
     vertices = face_i + signs[:, :1] * half_u * u_i + signs[:, 1:] * half_v * v_i  # (4, 3)
     following = jnp.roll(vertices, -1, axis=0)
-    x0, y0 = dot(vertices - face_r, u_r), dot(vertices - face_r, v_r)
-    dx, dy = dot(following - vertices, u_r), dot(following - vertices, v_r)
+    x0, y0 = _dot(vertices - face_r, u_r), _dot(vertices - face_r, v_r)
+    dx, dy = _dot(following - vertices, u_r), _dot(following - vertices, v_r)
     a_grown, b_grown = a + tolerance, b + tolerance
     # Liang-Barsky: p t <= q for the four sides of the reference rectangle
     p = jnp.stack([-dx, dx, -dy, dy], axis=-1)
@@ -560,13 +575,13 @@ def _face_manifold(n, centre_r, axes_r, half_r, k, centre_i, axes_i, half_i, tol
     exits = vertices + t1[:, None] * (following - vertices)
     clipped = jnp.stack([starts, exits], axis=1).reshape(8, 3)
     clipped_valid = jnp.stack([nonempty, nonempty & (t1 < 1.0) & (t1 > t0)], axis=1).reshape(8)
-    clipped_separation = dot(clipped - face_r, n)
+    clipped_separation = _dot(clipped - face_r, n)
     # reference corners projected along n onto the incident face plane (|normal_i . n| >= 1/sqrt 3)
     corners = face_r + signs[:, :1] * a * u_r + signs[:, 1:] * b * v_r
-    corner_separation = dot(face_i - corners, normal_i) / dot(normal_i, n)
+    corner_separation = _dot(face_i - corners, normal_i) / _dot(normal_i, n)
     corners_on_i = corners + corner_separation[:, None] * n
     local = corners_on_i - face_i
-    corner_valid = (jnp.abs(dot(local, u_i)) < half_u - tolerance) & (jnp.abs(dot(local, v_i)) < half_v - tolerance)
+    corner_valid = (jnp.abs(_dot(local, u_i)) < half_u - tolerance) & (jnp.abs(_dot(local, v_i)) < half_v - tolerance)
     on_r = jnp.concatenate([clipped - clipped_separation[:, None] * n, corners])
     on_i = jnp.concatenate([clipped, corners_on_i])
     separation = jnp.concatenate([clipped_separation, corner_separation])
@@ -583,8 +598,8 @@ def _closest_corner_pair(d, axes_a, half_a, axes_b, half_b):
     signs = jnp.asarray(_CORNER_SIGNS, d.dtype)
     corners_a = _to_world(axes_a, signs * half_a)
     corners_b = d + _to_world(axes_b, signs * half_b)
-    on_b, out_b, distance_a = _point_box(matvec(axes_b[None], corners_a - d), half_b)  # a's corners vs b
-    on_a, out_a, distance_b = _point_box(matvec(axes_a[None], corners_b), half_a)  # b's corners vs a
+    on_b, out_b, distance_a = _point_box(_matvec(axes_b[None], corners_a - d), half_b)  # a's corners vs b
+    on_a, out_a, distance_b = _point_box(_matvec(axes_a[None], corners_b), half_a)  # b's corners vs a
     points_a = jnp.concatenate([corners_a, _to_world(axes_a, on_a)])
     points_b = jnp.concatenate([d + _to_world(axes_b, on_b), corners_b])
     normals = jnp.concatenate([-_to_world(axes_b, out_b), _to_world(axes_a, out_a)])
@@ -600,10 +615,11 @@ def box_box(pos_a, quat_a, half_extents_a, pos_b, quat_b, half_extents_b, margin
     skipped); the axis of largest separation wins, with a bias toward a's faces, then b's faces,
     then edges (`_SAT_*`). Face axis: the incident face of the other box is clipped against the
     reference face; the polygon vertices (<= 8) fill the slots in a fixed order (incident edge by
-    edge, then reference corners), each with the reference normal. Edge axis: slot 0 holds the
-    closest points of the two edges, normal along the edge cross product. If clipping finds no
-    point (apart across a corner) slot 0 holds the incident vertex or reference corner nearest to
-    the other box.
+    edge: start, exit; then reference corners), each with the reference normal. Edge axis: slot 0
+    holds the closest points of the two edges, normal along the edge cross product (when apart:
+    along the gap between the two points). Apart across a corner, the closest pair has a corner
+    in it and the separating axes miss it: the corner nearest to the other box (16 exact
+    point-box distances) then takes the first free slot, so the gap is exact in every regime.
 
     pos_* (3,), quat_* (4,), half_extents_* (3,) m, margin m.
     """
@@ -611,14 +627,14 @@ def box_box(pos_a, quat_a, half_extents_a, pos_b, quat_b, half_extents_b, margin
     half_a, half_b = half_extents_a, half_extents_b
     d = pos_b - pos_a  # all geometry relative to a's centre
     scale = (jnp.sum(half_a) + jnp.sum(half_b)) / 6.0
-    overlap = jnp.abs(dot(axes_a[:, None, :], axes_b[None, :, :]))  # |A_i . B_j|
-    separation_a = jnp.abs(dot(axes_a, d)) - half_a - jnp.sum(overlap * half_b, axis=1)
-    separation_b = jnp.abs(dot(axes_b, d)) - half_b - jnp.sum(overlap * half_a[:, None], axis=0)
+    overlap = jnp.abs(_dot(axes_a[:, None, :], axes_b[None, :, :]))  # |A_i . B_j|
+    separation_a = jnp.abs(_dot(axes_a, d)) - half_a - jnp.sum(overlap * half_b, axis=1)
+    separation_b = jnp.abs(_dot(axes_b, d)) - half_b - jnp.sum(overlap * half_a[:, None], axis=0)
     edge_axes, edge_length = safe_normalize(cross(axes_a[:, None, :], axes_b[None, :, :]).reshape(9, 3))
     edge_ok = edge_length * edge_length > _EDGE_AXIS_SIN2
-    radius_a = jnp.sum(jnp.abs(dot(edge_axes[:, None, :], axes_a[None])) * half_a, axis=1)
-    radius_b = jnp.sum(jnp.abs(dot(edge_axes[:, None, :], axes_b[None])) * half_b, axis=1)
-    separation_e = jnp.where(edge_ok, jnp.abs(dot(edge_axes, d)) - radius_a - radius_b, -jnp.inf)
+    radius_a = jnp.sum(jnp.abs(_dot(edge_axes[:, None, :], axes_a[None])) * half_a, axis=1)
+    radius_b = jnp.sum(jnp.abs(_dot(edge_axes[:, None, :], axes_b[None])) * half_b, axis=1)
+    separation_e = jnp.where(edge_ok, jnp.abs(_dot(edge_axes, d)) - radius_a - radius_b, -jnp.inf)
     ia, ib, ie = _first_max3(separation_a), _first_max3(separation_b), _first_max(separation_e)
     best_a, best_b, best_e = jnp.max(separation_a), jnp.max(separation_b), jnp.max(separation_e)
     use_b = best_b > best_a + _SAT_RELATIVE * jnp.abs(best_a) + _SAT_FACE_ABSOLUTE * scale
@@ -632,7 +648,7 @@ def box_box(pos_a, quat_a, half_extents_a, pos_b, quat_b, half_extents_b, margin
     half_r, half_i = jnp.where(use_b, half_b, half_a), jnp.where(use_b, half_a, half_b)
     k = jnp.where(use_b, ib, ia)
     n = _select(axes_r, k)
-    n = n * jnp.where(dot(n, centre_i - centre_r) >= 0.0, 1.0, -1.0)
+    n = n * jnp.where(_dot(n, centre_i - centre_r) >= 0.0, 1.0, -1.0)
     tolerance = _CLIP_TOLERANCE * scale
     on_r, on_i, separation, valid = _face_manifold(n, centre_r, axes_r, half_r, k, centre_i, axes_i, half_i, tolerance)
     # compact: the valid candidates fill slots 0, 1, ... in their fixed order (at most 8 are valid)
@@ -649,9 +665,9 @@ def box_box(pos_a, quat_a, half_extents_a, pos_b, quat_b, half_extents_b, margin
     # edge contact: closest points of the supporting edges of a (along A_i) and b (along B_j)
     i_edge, j_edge = jnp.any(ie.reshape(3, 3), axis=1), jnp.any(ie.reshape(3, 3), axis=0)  # ie = 3 i + j
     axis = _select(edge_axes, ie)
-    axis = axis * jnp.where(dot(axis, d) >= 0.0, 1.0, -1.0)
-    towards_b = jnp.where(dot(axes_a, axis) >= 0.0, 1.0, -1.0) * ~i_edge
-    towards_a = jnp.where(dot(axes_b, axis) >= 0.0, -1.0, 1.0) * ~j_edge
+    axis = axis * jnp.where(_dot(axis, d) >= 0.0, 1.0, -1.0)
+    towards_b = jnp.where(_dot(axes_a, axis) >= 0.0, 1.0, -1.0) * ~i_edge
+    towards_a = jnp.where(_dot(axes_b, axis) >= 0.0, -1.0, 1.0) * ~j_edge
     edge_centre_a = _to_world(axes_a, towards_b * half_a)
     edge_centre_b = d + _to_world(axes_b, towards_a * half_b)
     u_a, u_b = _select(axes_a, i_edge), _select(axes_b, j_edge)
@@ -662,7 +678,7 @@ def box_box(pos_a, quat_a, half_extents_a, pos_b, quat_b, half_extents_b, margin
     edge_b = edge_centre_b + t * u_b
     # penetrating: depth along the axis; apart: the true gap of the two edge points (clamped ends
     # are not aligned with the axis, and a corner pair below may then be nearer)
-    edge_distance = dot(edge_b - edge_a, axis)
+    edge_distance = _dot(edge_b - edge_a, axis)
     gap_normal, gap = _normalize_or(edge_b - edge_a, axis)
     apart = edge_distance > 0.0
     edge_normal = jnp.where(apart, gap_normal, axis)
@@ -711,7 +727,7 @@ def plane_pose(normal, offset) -> tuple[jnp.ndarray, jnp.ndarray]:
 
 def _plane_of(pos, quat):
     normal = _z_axis(quat)
-    return normal, dot(normal, pos)
+    return normal, _dot(normal, pos)
 
 
 Collider = Callable[..., Contacts]
