@@ -1,6 +1,7 @@
 """Gradients through rollouts: finite differences in float64, and no NaN at singular poses."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -9,6 +10,9 @@ import pytest
 import scenes
 
 import dbdjax as dbd
+
+# These tests check derivatives, not speed: LLVM at -O0 more than halves their compile time.
+quick_jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 
 
 def central_difference(function, x, epsilon=1e-6):
@@ -49,8 +53,8 @@ def test_gradient_wrt_initial_velocity_matches_finite_differences(float64):
     def loss(velocity):
         return tip_height_after(model, dataclasses.replace(start, vel=velocity))
 
-    analytic = jax.jit(jax.grad(loss))(start.vel)
-    numeric = central_difference(jax.jit(loss), start.vel)
+    analytic = quick_jit(jax.grad(loss))(start.vel)
+    numeric = central_difference(quick_jit(loss), start.vel)
     assert relative_error(analytic, numeric) < 1e-4
 
 
@@ -65,8 +69,8 @@ def test_gradient_wrt_body_mass_matches_finite_differences(float64, checkpoint):
         return tip_height_after(dataclasses.replace(model, bodies=bodies, joints=joints), start)
 
     mass, anchor = model.bodies.mass, model.joints.local_anchor_b
-    analytic_mass = jax.jit(jax.grad(loss, argnums=0))(mass, anchor)
-    numeric_mass = central_difference(jax.jit(lambda m: loss(m, anchor)), mass)
+    analytic_mass = quick_jit(jax.grad(loss, argnums=0))(mass, anchor)
+    numeric_mass = central_difference(quick_jit(lambda m: loss(m, anchor)), mass)
     assert relative_error(analytic_mass, numeric_mass) < 1e-4
 
 
@@ -84,8 +88,8 @@ def test_gradient_wrt_joint_anchor_matches_finite_differences(float64):
         return tip_height_after(dataclasses.replace(model, joints=joints), start)
 
     anchor = model.joints.local_anchor_b
-    analytic = jax.jit(jax.grad(loss))(anchor)
-    numeric = central_difference(jax.jit(loss), anchor)
+    analytic = quick_jit(jax.grad(loss))(anchor)
+    numeric = central_difference(quick_jit(loss), anchor)
     assert relative_error(analytic, numeric) < 1e-4
 
 
@@ -100,7 +104,7 @@ def test_gradient_wrt_gravity_and_limits_is_finite_and_matches(float64):
         return final.pos[0, 0]
 
     analytic = jax.grad(loss)(model.gravity)
-    numeric = central_difference(jax.jit(loss), model.gravity)
+    numeric = central_difference(quick_jit(loss), model.gravity)
     assert relative_error(analytic, numeric) < 1e-4
 
 
@@ -125,7 +129,7 @@ def test_no_nan_gradient_at_singular_configurations(kind):
         final, _ = dbd.rollout(model, state, steps=5)
         return jnp.sum(final.pos**2) + jnp.sum(final.quat) + jnp.sum(final.ang_vel)
 
-    state_gradient, model_gradient = jax.jit(jax.grad(loss, argnums=(0, 1)))(start, model)
+    state_gradient, model_gradient = quick_jit(jax.grad(loss, argnums=(0, 1)))(start, model)
     for leaf in jax.tree.leaves((state_gradient, model_gradient)):
         assert np.all(np.isfinite(np.asarray(leaf)))
 
@@ -155,9 +159,9 @@ def test_gradient_of_tracking_loss_wrt_drive_targets_and_stiffness(float64):
         return jnp.sum((tip - goal) ** 2)
 
     stiffness = model.joints.drive_stiffness
-    analytic_controls, analytic_stiffness = jax.jit(jax.grad(loss, argnums=(0, 1)))(controls, stiffness)
-    numeric_controls = central_difference(jax.jit(lambda c: loss(c, stiffness)), controls)
-    numeric_stiffness = central_difference(jax.jit(lambda k: loss(controls, k)), stiffness)
+    analytic_controls, analytic_stiffness = quick_jit(jax.grad(loss, argnums=(0, 1)))(controls, stiffness)
+    numeric_controls = central_difference(quick_jit(lambda c: loss(c, stiffness)), controls)
+    numeric_stiffness = central_difference(quick_jit(lambda k: loss(controls, k)), stiffness)
     print(
         f"\ndriven arm: relative error d/d controls {relative_error(analytic_controls, numeric_controls):.2e}, "
         f"d/d stiffness {relative_error(analytic_stiffness, numeric_stiffness):.2e}"
@@ -196,8 +200,8 @@ def test_gradient_wrt_spring_rope_and_volume_parameters(float64, family, field):
         return jnp.sum(final.pos[:, 2] * jnp.arange(1.0, 5.0)) + jnp.sum(final.pos[:, 0])
 
     value = getattr(getattr(model, family), field)
-    analytic = jax.jit(jax.grad(loss))(value)
-    numeric = central_difference(jax.jit(loss), value)
+    analytic = quick_jit(jax.grad(loss))(value)
+    numeric = central_difference(quick_jit(loss), value)
     assert np.all(np.isfinite(np.asarray(analytic)))
     assert relative_error(analytic, numeric) < 1e-4
 
@@ -218,7 +222,7 @@ def test_gradient_wrt_user_force_parameters(float64):
         return jnp.sum(final.pos * jnp.array([1.0, 2.0, 3.0]))
 
     params = model.forces[0]
-    analytic = jax.jit(jax.grad(loss))(params)
+    analytic = quick_jit(jax.grad(loss))(params)
     for name in params:
-        numeric = central_difference(jax.jit(lambda v, n=name: loss({**params, n: v})), params[name])
+        numeric = central_difference(quick_jit(lambda v, n=name: loss({**params, n: v})), params[name])
         assert relative_error(analytic[name], numeric) < 1e-4, name
