@@ -104,20 +104,9 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
 
 
 def _anchor_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
-    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX.
-
-    delta is summed from differences of like terms, never from large absolute positions, so a
-    joint 10 km from the origin is solved as precisely as one at the origin. For the world side
-    the anchor itself is the origin and the arm is zero.
-    """
-    arm_a = math.quat_rotate(quat_a, joint.local_anchor_a)
-    arm_b = math.quat_rotate(quat_b, joint.local_anchor_b)
-    origin_a = pair.origin_a + jnp.where(flag.world_a, arm_a, 0.0)
-    origin_b = pair.origin_b + jnp.where(flag.world_b, arm_b, 0.0)
-    arm_a = jnp.where(flag.world_a, 0.0, arm_a)
-    arm_b = jnp.where(flag.world_b, 0.0, arm_b)
-    delta = (origin_a - origin_b) + (pair.dx_a - pair.dx_b) + (arm_a - arm_b)
-    return delta, arm_a, arm_b
+    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX."""
+    return row.anchor_points(pair, joint.local_anchor_a, joint.local_anchor_b, flag.world_a, flag.world_b,
+                             quat_a, quat_b)  # fmt: skip
 
 
 def _relative_rotation(joint: Joints, quat_a, quat_b):

@@ -23,13 +23,8 @@ def _line(local_anchor_a, local_anchor_b, world: np.ndarray, pair: BodyPair):
 
     world: (2,) bool, which side is the world (its anchor is a world point, its arm zero)."""
     quat_a, quat_b = pair.current_quats()
-    arm_a = math.quat_rotate(quat_a, local_anchor_a)
-    arm_b = math.quat_rotate(quat_b, local_anchor_b)
-    origin_a = pair.origin_a + jnp.where(world[0], arm_a, 0.0)
-    origin_b = pair.origin_b + jnp.where(world[1], arm_b, 0.0)
-    arm_a = jnp.where(world[0], 0.0, arm_a)
-    arm_b = jnp.where(world[1], 0.0, arm_b)
-    direction, length = math.safe_normalize((origin_a - origin_b) + (pair.dx_a - pair.dx_b) + (arm_a - arm_b))
+    delta, arm_a, arm_b = row.anchor_points(pair, local_anchor_a, local_anchor_b, world[0], world[1], quat_a, quat_b)
+    direction, length = math.safe_normalize(delta)
     return direction, length, arm_a, arm_b
 
 

@@ -72,6 +72,25 @@ class BodyPair(NamedTuple):
         )
 
 
+def anchor_points(pair: BodyPair, local_anchor_a, local_anchor_b, world_a, world_b, quat_a, quat_b):
+    """A point fixed on each body at X* + dX: (delta = p_a - p_b, arm_a, arm_b).
+
+    local_anchor_*: (3,) in the body frames (world coordinates for the world side, flagged by the
+    bool world_*). quat_*: the bodies' current orientations. delta is summed from differences of
+    like terms, never from large absolute positions, so a constraint 10 km from the origin is
+    solved as precisely as one at the origin. For the world side the anchor itself is the origin
+    and the arm is zero.
+    """
+    arm_a = math.quat_rotate(quat_a, local_anchor_a)
+    arm_b = math.quat_rotate(quat_b, local_anchor_b)
+    origin_a = pair.origin_a + jnp.where(world_a, arm_a, 0.0)
+    origin_b = pair.origin_b + jnp.where(world_b, arm_b, 0.0)
+    arm_a = jnp.where(world_a, 0.0, arm_a)
+    arm_b = jnp.where(world_b, 0.0, arm_b)
+    delta = (origin_a - origin_b) + (pair.dx_a - pair.dx_b) + (arm_a - arm_b)
+    return delta, arm_a, arm_b
+
+
 class BodySet(NamedTuple):
     """The S bodies one constraint node moves (S = 2 for joints, 4 for a tetrahedron, ...).
 
