@@ -7,6 +7,7 @@ All checks happen here, on the host, so that a model that cannot be simulated is
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -15,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import colouring
+from dbdjax import colouring, shapes
+from dbdjax.collision import BOX, CAPSULE, PLANE, SPHERE, num_points
 from dbdjax.model import (
     BALL,
     FIXED,
@@ -24,12 +26,14 @@ from dbdjax.model import (
     SLIDER,
     WORLD,
     Bodies,
+    ContactGroup,
     Distances,
     ForceGroup,
     Joints,
     Model,
     Options,
     Ropes,
+    Shapes,
     Springs,
     StaticArray,
     Structure,
@@ -72,6 +76,18 @@ def _quat(value, what: str) -> np.ndarray:
     return quat / norm
 
 
+def _check_inertia(label: str, inertia: np.ndarray) -> None:
+    if np.any(inertia <= 0.0):
+        raise ValueError(f"{label}: inertia must be positive definite, got {inertia.tolist()}")
+    for i in range(3):
+        others = inertia[(i + 1) % 3] + inertia[(i + 2) % 3]
+        if inertia[i] > others * (1.0 + 1e-6):
+            raise ValueError(
+                f"{label}: inertia {inertia.tolist()} violates the triangle inequality "
+                "(no rigid body has one principal moment larger than the other two together)"
+            )
+
+
 def _rotate(quat: np.ndarray, vector: np.ndarray, inverse: bool = False) -> np.ndarray:
     w, u = quat[0], quat[1:] * (-1.0 if inverse else 1.0)
     t = 2.0 * np.cross(u, vector)
@@ -90,8 +106,8 @@ def _conjugate(q: np.ndarray) -> np.ndarray:
 @dataclasses.dataclass
 class _Body:
     name: str
-    mass: float
-    inertia: np.ndarray
+    mass: float | None  # None: from the shapes and their density
+    inertia: np.ndarray | None  # None: from the shapes
     pos: np.ndarray
     quat: np.ndarray
     vel: np.ndarray
@@ -136,6 +152,22 @@ class _Link:
 
 
 @dataclasses.dataclass
+class _Shape:
+    name: str
+    kind: int
+    body: int
+    size: np.ndarray
+    pos: np.ndarray  # in the body frame at build time (world for the world)
+    quat: np.ndarray
+    friction: float
+    dynamic_friction: float
+    restitution: float
+    density: float
+    contype: int
+    conaffinity: int
+
+
+@dataclasses.dataclass
 class _Force:
     bodies: tuple[int, ...]
     function: Callable
@@ -161,6 +193,9 @@ class ModelBuilder:
         self._ropes: list[tuple[tuple[int, ...], float, float]] = []  # (bodies, length, relaxation)
         self._volumes: list[tuple[tuple[int, ...], float, float]] = []  # (bodies, volume, relaxation)
         self._forces: list[_Force] = []
+        self._shapes: list[_Shape] = []
+        self._excluded: set[frozenset[int]] = set()  # body pairs that never touch
+        self._allowed: set[frozenset[int]] = set()  # jointed body pairs that may touch anyway
         self._control_names: list[str] = []
 
     # ----------------------------------------------------------------------------- bodies
@@ -168,8 +203,8 @@ class ModelBuilder:
         self,
         pos: Sequence[float] = (0.0, 0.0, 0.0),
         quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
-        mass: float = 1.0,
-        inertia: Sequence[float] = (0.1, 0.1, 0.1),
+        mass: float | None = None,
+        inertia: Sequence[float] | None = None,
         vel: Sequence[float] = (0.0, 0.0, 0.0),
         ang_vel: Sequence[float] = (0.0, 0.0, 0.0),
         name: str | None = None,
@@ -178,22 +213,20 @@ class ModelBuilder:
 
         pos: centre of mass (m). quat: orientation of the body frame, in which `inertia` (the
         three principal moments, kg m^2) is given. vel, ang_vel: initial velocities (world).
+        mass/inertia left out are derived at `finalize` from the body's shapes and their density
+        (the body frame then moves to the shapes' centre of mass and principal axes, as MuJoCo's
+        inertial frame does; shapes and joint anchors keep their world placement). A body with no
+        shapes and no mass gets mass 1 kg and inertia (0.1, 0.1, 0.1).
         """
         index = len(self._bodies)
         label = f"body {index}" + (f" ({name!r})" if name else "")
-        mass = _scalar(mass, f"{label}: mass")
-        if mass <= 0.0:
-            raise ValueError(f"{label}: mass must be positive, got {mass}")
-        inertia = _vector(inertia, 3, f"{label}: inertia")
-        if np.any(inertia <= 0.0):
-            raise ValueError(f"{label}: inertia must be positive definite, got {inertia.tolist()}")
-        for i in range(3):
-            others = inertia[(i + 1) % 3] + inertia[(i + 2) % 3]
-            if inertia[i] > others * (1.0 + 1e-6):
-                raise ValueError(
-                    f"{label}: inertia {inertia.tolist()} violates the triangle inequality "
-                    "(no rigid body has one principal moment larger than the other two together)"
-                )
+        if mass is not None:
+            mass = _scalar(mass, f"{label}: mass")
+            if mass <= 0.0:
+                raise ValueError(f"{label}: mass must be positive, got {mass}")
+        if inertia is not None:
+            inertia = _vector(inertia, 3, f"{label}: inertia")
+            _check_inertia(label, inertia)
         self._bodies.append(
             _Body(
                 name=name or f"body {index}",
@@ -206,6 +239,101 @@ class ModelBuilder:
             )
         )
         return index
+
+    # ----------------------------------------------------------------------------- shapes
+    def add_sphere(self, body: int, radius: float, pos: Sequence[float] = (0.0, 0.0, 0.0), **material) -> int:
+        """A sphere on `body` (or the world) centred at `pos` in the body frame; returns its index.
+
+        material (every shape): friction (static mu_s, default 0.5), dynamic_friction (mu_d,
+        default = friction), restitution (default 0), density (kg/m^3, default 1000, for bodies
+        without a mass), contype / conaffinity (MuJoCo's collision bits, default 1 / 1), name.
+        """
+        label = self._shape_label("sphere", material.get("name"))
+        size = np.array([self._positive(radius, f"{label}: radius"), 0.0, 0.0])
+        return self._add_shape(label, SPHERE, body, size, pos, (1.0, 0.0, 0.0, 0.0), **material)
+
+    def add_capsule(
+        self, body: int, radius: float, half_length: float, pos: Sequence[float] = (0.0, 0.0, 0.0),
+        quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0), **material,
+    ) -> int:  # fmt: skip
+        """A capsule on `body`: a segment of 2 half_length along its local z axis, swept by a
+        sphere of `radius`; pose (pos, quat) in the body frame. material: see `add_sphere`."""
+        label = self._shape_label("capsule", material.get("name"))
+        size = np.array([self._positive(radius, f"{label}: radius"),
+                         self._non_negative(half_length, f"{label}: half_length"), 0.0])  # fmt: skip
+        return self._add_shape(label, CAPSULE, body, size, pos, quat, **material)
+
+    def add_box(
+        self, body: int, half_extents: Sequence[float], pos: Sequence[float] = (0.0, 0.0, 0.0),
+        quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0), **material,
+    ) -> int:  # fmt: skip
+        """A box of `half_extents` (m) on `body`, pose (pos, quat) in the body frame.
+        material: see `add_sphere`."""
+        label = self._shape_label("box", material.get("name"))
+        size = _vector(half_extents, 3, f"{label}: half_extents")
+        if np.any(size <= 0.0):
+            raise ValueError(f"{label}: half_extents must be positive, got {size.tolist()}")
+        return self._add_shape(label, BOX, body, size, pos, quat, **material)
+
+    def add_plane(self, normal: Sequence[float] = (0.0, 0.0, 1.0), offset: float = 0.0, **material) -> int:
+        """The static half-space {x : normal . x <= offset} (solid below the plane); returns its
+        index. normal: world direction (normalised here). material: see `add_sphere`."""
+        label = self._shape_label("plane", material.get("name"))
+        normal = _unit(normal, f"{label}: normal")
+        offset = _scalar(offset, f"{label}: offset")
+        # a pose whose local z is the normal: the shortest arc from +z, half a turn about x for -z
+        raw = np.array([1.0 + normal[2], -normal[1], normal[0], 0.0])
+        quat = raw / np.linalg.norm(raw) if np.linalg.norm(raw) > 1e-9 else np.array([0.0, 1.0, 0.0, 0.0])
+        return self._add_shape(label, PLANE, WORLD, np.zeros(3), offset * normal, quat, **material)
+
+    def exclude_collision(self, body_a: int, body_b: int) -> None:
+        """Never let the shapes of these two bodies touch (MJCF's <exclude>)."""
+        self._check_bodies("exclude_collision", body_a, body_b)
+        self._excluded.add(frozenset((int(body_a), int(body_b))))
+
+    def allow_collision(self, body_a: int, body_b: int) -> None:
+        """Let two bodies joined by a joint touch (by default jointed neighbours do not)."""
+        self._check_bodies("allow_collision", body_a, body_b)
+        self._allowed.add(frozenset((int(body_a), int(body_b))))
+
+    def _shape_label(self, kind: str, name: str | None) -> str:
+        return f"{kind} shape {len(self._shapes)}" + (f" ({name!r})" if name else "")
+
+    def _add_shape(
+        self, label: str, kind: int, body: int, size: np.ndarray, pos, quat, friction: float = 0.5,
+        dynamic_friction: float | None = None, restitution: float = 0.0, density: float = 1000.0,
+        contype: int = 1, conaffinity: int = 1, name: str | None = None,
+    ) -> int:  # fmt: skip
+        if not isinstance(body, (int, np.integer)) or isinstance(body, bool):
+            raise ValueError(f"{label}: body must be a body index (int), got {body!r}")
+        if body != WORLD and not 0 <= body < len(self._bodies):
+            raise ValueError(f"{label}: body = {body} is not a body index "
+                             f"(there are {len(self._bodies)} bodies; the world is {WORLD})")  # fmt: skip
+        friction = self._non_negative(friction, f"{label}: friction")
+        dynamic = friction if dynamic_friction is None else self._non_negative(dynamic_friction,
+                                                                               f"{label}: dynamic_friction")
+        if dynamic > friction:
+            raise ValueError(f"{label}: dynamic_friction {dynamic} exceeds the static friction {friction} "
+                             "(the dry friction model of DBD 7.1 needs mu_d <= mu_s)")  # fmt: skip
+        restitution = _scalar(restitution, f"{label}: restitution")
+        if not 0.0 <= restitution <= 1.0:
+            raise ValueError(f"{label}: restitution must be in [0, 1], got {restitution}")
+        for what, bits in (("contype", contype), ("conaffinity", conaffinity)):
+            if not isinstance(bits, (int, np.integer)) or isinstance(bits, bool) or bits < 0:
+                raise ValueError(f"{label}: {what} must be a non-negative int (bit mask), got {bits!r}")
+        self._shapes.append(
+            _Shape(name or label, kind, int(body), size, _vector(pos, 3, f"{label}: pos"),
+                   _quat(quat, f"{label}: quat"), friction, dynamic, restitution,
+                   self._positive(density, f"{label}: density"), int(contype), int(conaffinity))  # fmt: skip
+        )
+        return len(self._shapes) - 1
+
+    @staticmethod
+    def _positive(value, what: str) -> float:
+        number = _scalar(value, what)
+        if number <= 0.0:
+            raise ValueError(f"{what} must be positive, got {number}")
+        return number
 
     # ----------------------------------------------------------------------------- joints
     def add_ball_joint(
@@ -574,6 +702,9 @@ class ModelBuilder:
         jacobi: bool = False,
         velocity_dependent_inertia: bool = False,
         checkpoint: bool = False,
+        contact_margin: float = 0.01,
+        contact_compliance: float = 0.0,
+        restitution_iterations: int = 2,
     ) -> Model:
         """Freeze the description into a `Model` for `init`, `step` and `rollout`.
 
@@ -582,11 +713,16 @@ class ModelBuilder:
         jacobi: project every joint at once and average per body instead (for comparison).
         velocity_dependent_inertia: use the effective inertia of DBD (58) in the solver.
         checkpoint: rematerialise each substep in reverse mode (memory flat in substeps).
+        contact_margin: m, shapes closer than this get contact slots (speculative contacts; they
+        only push once they touch). contact_compliance: m/N, 0 for rigid contacts; a small value
+        (1e-6 .. 1e-4) makes contact a stiff spring, whose gradients are smoother for trajectory
+        optimisation. restitution_iterations: sweeps of the velocity pass (restitution).
         """
         dt = _scalar(dt, "finalize: dt")
         if dt <= 0.0:
             raise ValueError(f"finalize: dt must be positive, got {dt}")
-        for what, count in (("substeps", substeps), ("iterations", iterations)):
+        for what, count in (("substeps", substeps), ("iterations", iterations),
+                            ("restitution_iterations", restitution_iterations)):  # fmt: skip
             if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
                 raise ValueError(f"finalize: {what} must be a positive integer, got {count!r}")
         if solver not in SOLVERS:
@@ -595,28 +731,101 @@ class ModelBuilder:
             raise ValueError(f"finalize: unknown solver {solver!r}; choose one of {SOLVERS}")
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
+        contact_margin = self._non_negative(contact_margin, "finalize: contact_margin")
+        contact_compliance = self._non_negative(contact_compliance, "finalize: contact_compliance")
 
         options = Options(
             dt=dt, substeps=int(substeps), iterations=int(iterations), solver=solver,
             jacobi=bool(jacobi), velocity_dependent_inertia=bool(velocity_dependent_inertia),
-            checkpoint=bool(checkpoint),
+            checkpoint=bool(checkpoint), contact_margin=contact_margin, contact_compliance=contact_compliance,
+            restitution_iterations=int(restitution_iterations),
         )  # fmt: skip
         return self._model(options)
 
-    def _frame(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+    def _resolve_bodies(self) -> tuple[list[_Body], list[tuple[np.ndarray, np.ndarray]]]:
+        """Bodies with every mass and inertia filled in, and each shape's pose in its body's frame.
+
+        Mass and inertia that were not given come from the body's shapes (density x volume, the
+        inertia tensor about the centre of mass). When the shapes' centre of mass or principal
+        axes differ from the body frame, the frame moves there (velocities follow: the centre's
+        velocity is v + w x offset) and the shapes' local poses are re-expressed in it.
+        """
+        resolved = [dataclasses.replace(b) for b in self._bodies]
+        poses = [(s.pos, s.quat) for s in self._shapes]
+        for index, body in enumerate(resolved):
+            if body.mass is not None and body.inertia is not None:
+                continue
+            own = [i for i, s in enumerate(self._shapes) if s.body == index]
+            if not own:
+                body.mass = 1.0 if body.mass is None else body.mass
+                body.inertia = np.full(3, 0.1) if body.inertia is None else body.inertia
+                continue
+            records = [self._shapes[i] for i in own]
+            mass, centre, tensor = shapes.mass_properties(
+                [s.kind for s in records], [s.size for s in records], [s.pos for s in records],
+                [s.quat for s in records], [s.density for s in records],
+            )  # fmt: skip
+            if body.mass is not None:  # the given mass, the shapes' mass distribution
+                tensor, mass = tensor * body.mass / mass, body.mass
+            if body.inertia is not None:  # the given inertia keeps the given frame
+                centre, moments, turn = np.zeros(3), body.inertia, np.array([1.0, 0.0, 0.0, 0.0])
+            else:
+                moments, turn = shapes.principal_axes(tensor)
+            _check_inertia(f"body {index} ({body.name!r}), inertia from its shapes,", moments)
+            body.vel = body.vel + np.cross(body.ang_vel, _rotate(body.quat, centre))
+            body.pos = body.pos + _rotate(body.quat, centre)
+            body.quat = _multiply(body.quat, turn)
+            body.mass, body.inertia = mass, moments
+            for i in own:  # shape pose in the new frame: turn^-1 (pos - centre), turn^-1 q
+                pos, quat = poses[i]
+                poses[i] = (_rotate(turn, pos - centre, inverse=True), _multiply(_conjugate(turn), quat))
+        return resolved, poses
+
+    @staticmethod
+    def _frame(bodies: list[_Body], index: int) -> tuple[np.ndarray, np.ndarray]:
         """(position, orientation) of a body at build time; the world is the identity at the origin."""
         if index == WORLD:
             return np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-        return self._bodies[index].pos, self._bodies[index].quat
+        return bodies[index].pos, bodies[index].quat
 
-    def _local_point(self, index: int, point: np.ndarray) -> np.ndarray:
+    def _local_point(self, bodies: list[_Body], index: int, point: np.ndarray) -> np.ndarray:
         """A world point at build time in the frame of body `index` (world coordinates for the world)."""
-        pos, quat = self._frame(index)
+        pos, quat = self._frame(bodies, index)
         return _rotate(quat, point - pos, inverse=True)
+
+    def _contact_groups(self, num_bodies: int) -> tuple[ContactGroup, ...]:
+        """The shape pairs that may touch, grouped by kind pair (kind_a <= kind_b).
+
+        Left out: shapes of one body, two static shapes, bodies excluded by `exclude_collision`,
+        bodies joined by a joint (unless `allow_collision`), and pairs MuJoCo's contype /
+        conaffinity rule rejects.
+        """
+        jointed = {frozenset((j.body_a, j.body_b)) for j in self._joints} - self._allowed
+        groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for i, first in enumerate(self._shapes):
+            for j in range(i + 1, len(self._shapes)):
+                second = self._shapes[j]
+                bodies = frozenset((first.body, second.body))
+                if (first.body == second.body or (first.body == WORLD and second.body == WORLD)
+                        or bodies in self._excluded or bodies in jointed
+                        or not shapes.may_collide(first.contype, first.conaffinity, second.contype,
+                                                  second.conaffinity)):  # fmt: skip
+                    continue
+                pair = (i, j) if first.kind <= second.kind else (j, i)
+                groups.setdefault((self._shapes[pair[0]].kind, self._shapes[pair[1]].kind), []).append(pair)
+        result = []
+        for (kind_a, kind_b), pairs in sorted(groups.items()):
+            table = np.asarray(pairs, dtype=np.int32).reshape(-1, 2)
+            body_of = np.asarray([num_bodies if s.body == WORLD else s.body for s in self._shapes], dtype=np.int32)
+            result.append(ContactGroup(kind_a, kind_b, StaticArray(table), StaticArray(body_of[table]),
+                                       num_points(kind_a, kind_b)))  # fmt: skip
+        return tuple(result)
 
     def _model(self, options: Options) -> Model:
         n = len(self._bodies)
-        body = self._bodies
+        body, shape_poses = self._resolve_bodies()
+        frame = functools.partial(self._frame, body)
+        local_point = functools.partial(self._local_point, body)
         bodies = Bodies(
             mass=jnp.asarray([b.mass for b in body]),
             inertia=jnp.asarray(np.stack([b.inertia for b in body])),
@@ -641,11 +850,11 @@ class ModelBuilder:
 
         js = self._joints
         joints = Joints(
-            local_anchor_a=table([self._local_point(j.body_a, j.anchor) for j in js], 3),
-            local_anchor_b=table([self._local_point(j.body_b, j.anchor) for j in js], 3),
-            local_axis_a=table([_rotate(self._frame(j.body_a)[1], j.axis, inverse=True) for j in js], 3),
-            local_axis_b=table([_rotate(self._frame(j.body_b)[1], j.axis, inverse=True) for j in js], 3),
-            rest_rotation=table([_multiply(_conjugate(self._frame(j.body_a)[1]), self._frame(j.body_b)[1])
+            local_anchor_a=table([local_point(j.body_a, j.anchor) for j in js], 3),
+            local_anchor_b=table([local_point(j.body_b, j.anchor) for j in js], 3),
+            local_axis_a=table([_rotate(frame(j.body_a)[1], j.axis, inverse=True) for j in js], 3),
+            local_axis_b=table([_rotate(frame(j.body_b)[1], j.axis, inverse=True) for j in js], 3),
+            rest_rotation=table([_multiply(_conjugate(frame(j.body_a)[1]), frame(j.body_b)[1])
                                  for j in js], 4),  # fmt: skip
             **{f: column(js, f) for f in ("lower", "upper", "cone_limit", "relaxation", "regularization",
                                           "drive_stiffness", "drive_damping", "drive_max_torque", "motor_max_force")},
@@ -653,8 +862,8 @@ class ModelBuilder:
 
         def links(records) -> tuple[dict, StaticArray]:
             arrays = dict(
-                local_anchor_a=table([self._local_point(r.body_a, r.anchor_a) for r in records], 3),
-                local_anchor_b=table([self._local_point(r.body_b, r.anchor_b) for r in records], 3),
+                local_anchor_a=table([local_point(r.body_a, r.anchor_a) for r in records], 3),
+                local_anchor_b=table([local_point(r.body_b, r.anchor_b) for r in records], 3),
                 relaxation=column(records, "relaxation"),
             )
             return arrays, body_table([(solver_index(r.body_a), solver_index(r.body_b)) for r in records], 2)
@@ -710,12 +919,27 @@ class ModelBuilder:
             rope_bodies=rope_bodies,
             volume_bodies=volume_bodies,
             force_groups=force_groups,
+            shape_kind=StaticArray(np.asarray([sh.kind for sh in self._shapes], dtype=np.int32)),
+            shape_body=StaticArray(np.asarray([solver_index(sh.body) for sh in self._shapes], dtype=np.int32)),
+            contact_groups=self._contact_groups(n),
             colours=(),
+            contact_colours=(),
             body_names=tuple(b.name for b in body),
             joint_names=tuple(j.name for j in js),
             control_names=tuple(self._control_names),
         )
-        structure = dataclasses.replace(structure, colours=colouring.colour_groups(structure.family_bodies(), n))
+        structure = dataclasses.replace(
+            structure,
+            colours=colouring.colour_groups(structure.family_bodies(), n),
+            contact_colours=colouring.colour_groups([g.bodies.array for g in structure.contact_groups], n),
+        )
+        sh = self._shapes
+        shape_table = Shapes(
+            size=table([r.size for r in sh], 3),
+            local_pos=table([pos for pos, _ in shape_poses], 3),
+            local_quat=table([quat for _, quat in shape_poses], 4),
+            **{f: column(sh, f) for f in ("friction", "dynamic_friction", "restitution")},
+        )
         return Model(bodies=bodies, joints=joints, springs=springs, distances=distances, ropes=ropes,
-                     volumes=volumes, forces=force_params, gravity=jnp.asarray(self.gravity),
+                     volumes=volumes, forces=force_params, shapes=shape_table, gravity=jnp.asarray(self.gravity),
                      structure=structure, options=options)  # fmt: skip

@@ -193,6 +193,48 @@ Volumes = _pytree(Volumes)
 
 
 @dataclasses.dataclass(frozen=True)
+class Shapes:
+    """Collision shapes, K rows, each attached to a body (or to the world) with a local pose.
+
+    size: (K, 3) m: sphere (radius, 0, 0), capsule (radius, half_length, 0) along its local z,
+      box half extents, plane (0, 0, 0) (its normal is the local z axis).
+    local_pos: (K, 3), local_quat: (K, 4): the pose in the body frame (world frame for the world).
+    friction: (K,) static coefficient mu_s. dynamic_friction: (K,) mu_d <= mu_s.
+    restitution: (K,) in [0, 1]. A pair combines them as sqrt(mu_1 mu_2) and max(e_1, e_2).
+    """
+
+    size: jnp.ndarray
+    local_pos: jnp.ndarray
+    local_quat: jnp.ndarray
+    friction: jnp.ndarray
+    dynamic_friction: jnp.ndarray
+    restitution: jnp.ndarray
+
+
+Shapes = _pytree(Shapes)
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactGroup:
+    """The shape pairs of one kind pair (static: which pairs may touch is decided at finalize).
+
+    kind_a <= kind_b (collision.PLANE, SPHERE, CAPSULE, BOX). shapes: (C, 2) shape indices of each
+    pair, side a first. bodies: (C, 2) their bodies (index N for the world). num_points: P, the
+    contact slots of one pair (collision.num_points).
+    """
+
+    kind_a: int
+    kind_b: int
+    shapes: StaticArray
+    bodies: StaticArray
+    num_points: int
+
+    @property
+    def name(self) -> str:
+        return f"contacts {self.kind_a}-{self.kind_b}"
+
+
+@dataclasses.dataclass(frozen=True)
 class ForceGroup:
     """Static part of the user forces sharing one function (DBD 8, (94)-(99)).
 
@@ -233,7 +275,10 @@ class Structure:
     spring_bodies (L, 2), distance_bodies (D, 2), volume_bodies (V, 4): int.
     rope_bodies: (R, S) int, each rope's nodes in order, padded with N to the longest rope.
     force_groups: the user forces, one group per function.
-    colours: the colour groups of the solver (Gauss-Seidel order).
+    shape_kind: (K,) int, shape_body: (K,) int (N for the world).
+    contact_groups: the shape pairs that may touch, one group per kind pair.
+    colours: the colour groups of the solver (Gauss-Seidel order), over every family.
+    contact_colours: the colouring of the contact groups alone (the restitution pass).
     """
 
     num_bodies: int
@@ -251,7 +296,11 @@ class Structure:
     rope_bodies: StaticArray
     volume_bodies: StaticArray
     force_groups: tuple[ForceGroup, ...]
+    shape_kind: StaticArray
+    shape_body: StaticArray
+    contact_groups: tuple[ContactGroup, ...]
     colours: tuple[Colour, ...]
+    contact_colours: tuple[Colour, ...]
     body_names: tuple[str, ...]
     joint_names: tuple[str, ...]
     control_names: tuple[str, ...]
@@ -262,11 +311,12 @@ class Structure:
 
     def family_bodies(self) -> tuple[np.ndarray, ...]:
         """The bodies of every constraint node, one (M, S) table per family, in solver order:
-        joints, springs, distances, ropes, volumes, then each force group."""
+        joints, springs, distances, ropes, volumes, each force group, then each contact group."""
         joints = np.stack([self.joint_body_a.array, self.joint_body_b.array], axis=-1).reshape(-1, 2)
         fixed = (joints, self.spring_bodies.array, self.distance_bodies.array, self.rope_bodies.array,
                  self.volume_bodies.array)  # fmt: skip
-        return fixed + tuple(group.bodies.array for group in self.force_groups)
+        forces = tuple(group.bodies.array for group in self.force_groups)
+        return fixed + forces + tuple(group.bodies.array for group in self.contact_groups)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -280,6 +330,9 @@ class Options:
     jacobi: bool  # all joints at once, averaged per body, instead of coloured Gauss-Seidel
     velocity_dependent_inertia: bool  # DBD (58)
     checkpoint: bool  # jax.checkpoint each substep to keep reverse-mode memory flat
+    contact_margin: float = 0.01  # m: shapes closer than this get contact slots (speculative)
+    contact_compliance: float = 0.0  # m/N: 0 is rigid; > 0 softens contacts (smoother gradients)
+    restitution_iterations: int = 2  # Gauss-Seidel sweeps of the velocity pass
 
 
 @dataclasses.dataclass(frozen=True)
@@ -294,6 +347,7 @@ class Model:
     ropes: Ropes
     volumes: Volumes
     forces: tuple[Any, ...]  # the parameters of each force group, leading axis M
+    shapes: Shapes
     gravity: jnp.ndarray  # (3,) m/s^2
     structure: Structure
     options: Options
