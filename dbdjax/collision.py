@@ -59,14 +59,25 @@ z axis of its pose, offset = normal . position (`plane_pose` builds such a pose)
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax.math import cross, quat_rotate, safe_normalize
+from dbdjax.math import (
+    any_perpendicular,
+    cross,
+    quat_multiply,
+    quat_rotate,
+    quat_rotate_inverse,
+    safe_norm,
+    safe_normalize,
+    safe_sqrt,
+)
 
 PLANE, SPHERE, CAPSULE, BOX = 0, 1, 2, 3
 KIND_NAMES = {PLANE: "plane", SPHERE: "sphere", CAPSULE: "capsule", BOX: "box"}
@@ -118,7 +129,7 @@ class Contacts(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------------------
-# Helpers (candidates for dbdjax.math: _safe_divide, _normalize_or, _any_perpendicular)
+# Helpers (candidates for dbdjax.math: _safe_divide, _normalize_or)
 # ----------------------------------------------------------------------------------------------
 
 
@@ -132,12 +143,6 @@ def _normalize_or(v: jnp.ndarray, fallback: jnp.ndarray) -> tuple[jnp.ndarray, j
     """(unit vector, norm) of v (..., 3); where v is zero the unit vector is `fallback` and norm 0."""
     unit, length = safe_normalize(v)
     return jnp.where((length > 0.0)[..., None], unit, fallback), length
-
-
-def _any_perpendicular(u: jnp.ndarray) -> jnp.ndarray:
-    """A unit vector perpendicular to unit u (3,): u x e_k for the basis vector least aligned with u."""
-    basis = _first_max3(-jnp.abs(u)).astype(u.dtype)
-    return safe_normalize(cross(u, basis))[0]
 
 
 def _first_max(v: jnp.ndarray) -> jnp.ndarray:
@@ -318,7 +323,7 @@ def sphere_capsule(pos_a, radius_a, pos_b, quat_b, radius_b, half_length_b, marg
     d = pos_b - pos_a  # capsule centre relative to the sphere centre
     t = jnp.clip(-_dot(axis, d), -half_length_b, half_length_b)
     closest = d + t * axis
-    point_a, point_b, normal, distance = _sphere_pair(0.0 * d, radius_a, closest, radius_b, _any_perpendicular(axis))
+    point_a, point_b, normal, distance = _sphere_pair(0.0 * d, radius_a, closest, radius_b, any_perpendicular(axis))
     return _make(
         (pos_a + point_a)[None], (pos_a + point_b)[None], normal[None], distance[None], jnp.ones(1, bool), margin
     )
@@ -415,7 +420,7 @@ def capsule_capsule(pos_a, quat_a, radius_a, half_length_a, pos_b, quat_b, radiu
     on_a = s[:, None] * u_a
     on_b = d + t[:, None] * u_b
     fallback, crossing = safe_normalize(cross(u_a, u_b))
-    fallback = jnp.where(crossing > 0.0, fallback, _any_perpendicular(u_a))
+    fallback = jnp.where(crossing > 0.0, fallback, any_perpendicular(u_a))
     point_a, point_b, normal, distance = _sphere_pair(on_a, radius_a, on_b, radius_b, fallback)
     return _make(pos_a + point_a, pos_a + point_b, normal, distance, valid, margin)
 
@@ -788,3 +793,110 @@ def collide(kind_a: int, kind_b: int, size_a, pos_a, quat_a, size_b, pos_b, quat
         function, _ = _COLLIDERS[(kind_b, kind_a)]
         return flip(function(size_b, pos_b, quat_b, size_a, pos_a, quat_a, margin))
     raise ValueError(f"no collision between {KIND_NAMES.get(kind_a, kind_a)} and {KIND_NAMES.get(kind_b, kind_b)}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Detection over a model's contact groups (once per substep, at the predicted poses X*)
+# ----------------------------------------------------------------------------------------------
+
+
+class ContactSlots(NamedTuple):
+    """The contacts of one contact group for one substep: C pairs x P points, fixed shapes.
+
+    local_a, local_b: (C, P, 3) the contact points fixed in the bodies' frames (world
+      coordinates for a world side), found at the predicted pose X*.
+    normal: (C, P, 3) unit, from a to b, world frame, kept fixed over the substep.
+    offset: (C, P, 3) p_b - p_a of those body points at the start of the substep: friction holds
+      p_b - p_a at this value in the contact plane (no sliding over the substep, DBD (89)).
+    approach: (C, P) normal speed (v_b - v_a) . n of the points before the solve (the predicted
+      velocities V*, gravity included), m/s, negative when closing: what restitution reverses.
+    sliding: (C, P) bool, the points were sliding over each other at the start of the substep
+      (tangential speed above g h, the speed one substep of gravity gives): their friction is
+      bounded by mu_d, otherwise by mu_s (DBD 7.1).
+    active: (C, P) bool, a slot with a point closer than the contact margin.
+    friction, dynamic_friction, restitution: (C,) the pair's combined material:
+      sqrt(mu_1 mu_2) for both frictions and max(e_1, e_2), as Box2D combines them.
+    """
+
+    local_a: jnp.ndarray
+    local_b: jnp.ndarray
+    normal: jnp.ndarray
+    offset: jnp.ndarray
+    approach: jnp.ndarray
+    sliding: jnp.ndarray
+    active: jnp.ndarray
+    friction: jnp.ndarray
+    dynamic_friction: jnp.ndarray
+    restitution: jnp.ndarray
+
+
+def _with_world(array: jnp.ndarray, world_value) -> jnp.ndarray:
+    row = jnp.broadcast_to(jnp.asarray(world_value, array.dtype), (1,) + array.shape[1:])
+    return jnp.concatenate([array, row], axis=0)
+
+
+def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
+    """Contact slots of every contact group of `model` at the predicted poses.
+
+    start: the `State` at the start of the substep; predicted: X*, V* (integrator.predict);
+    h: the substep, s.
+    Returns one `ContactSlots` per `model.structure.contact_groups` entry.
+    """
+    structure, shapes = model.structure, model.shapes
+    dtype = predicted.pos.dtype
+    identity = jnp.array([1.0, 0.0, 0.0, 0.0], dtype)
+    # row N is the world: shapes on it are posed in world coordinates
+    pos = _with_world(predicted.pos, 0.0)
+    quat = _with_world(predicted.quat, identity)
+    start_pos = _with_world(start.pos, 0.0)
+    start_quat = _with_world(start.quat, identity)
+    vel = _with_world(predicted.vel, 0.0)
+    ang_vel = _with_world(predicted.ang_vel, 0.0)
+    start_vel = _with_world(start.vel, 0.0)
+    start_ang_vel = _with_world(start.ang_vel, 0.0)
+    creep = safe_norm(model.gravity) * h  # below this tangential speed a contact is sticking
+    result = []
+    for group in structure.contact_groups:
+        shape = group.shapes.array  # (C, 2)
+        body = group.bodies.array  # (C, 2)
+        side = [{"body": body[:, k], "shape": shape[:, k]} for k in (0, 1)]
+        for s in side:
+            local_quat = shapes.local_quat[s["shape"]]
+            s["size"] = shapes.size[s["shape"]]
+            s["pos"] = pos[s["body"]] + quat_rotate(quat[s["body"]], shapes.local_pos[s["shape"]])
+            s["quat"] = quat_multiply(quat[s["body"]], local_quat)
+
+        a, b = side
+        one_pair = functools.partial(collide, group.kind_a, group.kind_b)
+        contacts = jax.vmap(one_pair, in_axes=(0, 0, 0, 0, 0, 0, None))(
+            a["size"], a["pos"], a["quat"], b["size"], b["pos"], b["quat"], model.options.contact_margin
+        )
+
+        def body_point(s, point):
+            """The world point (C, P, 3) as a point fixed in the body: local coordinates, its arm
+            at the start of the substep, its predicted velocity and its velocity at the start."""
+            body = s["body"]
+            origin, orientation = pos[body][:, None], quat[body][:, None]
+            local = quat_rotate_inverse(orientation, point - origin)
+            start_arm = quat_rotate(start_quat[body][:, None], local)
+            speed = vel[body][:, None] + cross(ang_vel[body][:, None], point - origin)
+            start_speed = start_vel[body][:, None] + cross(start_ang_vel[body][:, None], start_arm)
+            return local, start_arm, speed, start_speed
+
+        local_a, start_arm_a, speed_a, start_speed_a = body_point(a, contacts.point_a)
+        local_b, start_arm_b, speed_b, start_speed_b = body_point(b, contacts.point_b)
+        offset = (start_pos[b["body"]] - start_pos[a["body"]])[:, None] + (start_arm_b - start_arm_a)
+        relative = start_speed_b - start_speed_a
+        tangential = relative - _dot(relative, contacts.normal)[..., None] * contacts.normal
+        friction = safe_sqrt(shapes.friction[shape[:, 0]] * shapes.friction[shape[:, 1]])
+        dynamic = safe_sqrt(shapes.dynamic_friction[shape[:, 0]] * shapes.dynamic_friction[shape[:, 1]])
+        restitution = jnp.maximum(shapes.restitution[shape[:, 0]], shapes.restitution[shape[:, 1]])
+        result.append(
+            ContactSlots(
+                local_a=local_a, local_b=local_b, normal=contacts.normal, offset=offset,
+                approach=_dot(speed_b - speed_a, contacts.normal), sliding=safe_norm(tangential) > creep,
+                active=contacts.active,
+                friction=friction, dynamic_friction=dynamic, restitution=restitution,
+            )  # fmt: skip
+        )
+    return tuple(result)

@@ -41,6 +41,12 @@ def skew(v: jnp.ndarray) -> jnp.ndarray:
     )
 
 
+def safe_sqrt(x: jnp.ndarray) -> jnp.ndarray:
+    """sqrt(x) for x >= 0 whose gradient at exactly zero is 0 instead of infinity."""
+    is_zero = x <= _TINY_SQUARED
+    return jnp.where(is_zero, 0.0, jnp.sqrt(jnp.where(is_zero, 1.0, x)))
+
+
 def safe_norm(v: jnp.ndarray, axis: int = -1, keepdims: bool = False) -> jnp.ndarray:
     """Euclidean norm whose gradient at exactly zero is 0 instead of NaN."""
     squared = jnp.sum(v * v, axis=axis, keepdims=keepdims)
@@ -61,6 +67,16 @@ def safe_normalize(v: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     norm = jnp.sqrt(safe_squared)
     unit = jnp.where(is_zero[..., None], 0.0, v / norm[..., None])
     return unit, jnp.where(is_zero, 0.0, norm)
+
+
+def any_perpendicular(u: jnp.ndarray) -> jnp.ndarray:
+    """A unit vector perpendicular to unit u (..., 3): u x e_k for the basis vector least aligned
+    with u (chosen by comparisons, first on ties, so the choice is deterministic)."""
+    size = jnp.abs(u)
+    x_least = (size[..., 0] <= size[..., 1]) & (size[..., 0] <= size[..., 2])
+    y_least = ~x_least & (size[..., 1] <= size[..., 2])
+    basis = jnp.stack([x_least, y_least, ~x_least & ~y_least], axis=-1).astype(u.dtype)
+    return safe_normalize(cross(u, basis))[0]
 
 
 def safe_asin(x: jnp.ndarray) -> jnp.ndarray:

@@ -2,9 +2,11 @@
 
 step(model, state, control):
   scan over substeps of h = dt / substeps:
-    X*, V* = integrator.predict(model, state, h)                 DBD (21)-(24)
-    dX     = solvers.dbd.solve(model, X*, control, h)            Algorithm 1, (45)-(52)
-    state  = integrator.apply(X*, dX, h)                (36)-(39)
+    X*, V*  = integrator.predict(model, state, h)                  DBD (21)-(24)
+    slots   = collision.detect(model, state, X*, h)                fixed shape, inactive masked
+    dX, lam = solvers.dbd.solve(model, X*, control, slots, h)      Algorithm 1, (45)-(52), (84)-(93)
+    state   = integrator.apply(X*, dX, h)                          (36)-(39)
+    state   = solvers.dbd.restitution(model, state, slots, lam, h) velocity pass (SI 2.1.4)
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from dbdjax import integrator
+from dbdjax import collision, integrator
 from dbdjax.model import Model, State
 from dbdjax.solvers import dbd
 
@@ -38,10 +40,12 @@ def _check_control(model: Model, control) -> None:
 
 
 def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -> State:
-    """One substep of h seconds: predict, solve, apply."""
+    """One substep of h seconds: predict, detect contacts, solve, apply, restitution."""
     predicted = integrator.predict(model, state, h)
-    displacement, rotation = dbd.solve(model, predicted, control, h)
-    return integrator.apply(predicted, displacement, rotation, h)
+    slots = collision.detect(model, state, predicted, h)
+    displacement, rotation, normal_multipliers = dbd.solve(model, predicted, control, slots, h)
+    state = integrator.apply(predicted, displacement, rotation, h)
+    return dbd.restitution(model, state, slots, normal_multipliers, h)
 
 
 def step(model: Model, state: State, control: jnp.ndarray | None = None) -> State:

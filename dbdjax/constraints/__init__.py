@@ -14,6 +14,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dbdjax import math
+from dbdjax.collision import ContactSlots
+from dbdjax.constraints import contacts as contact
 from dbdjax.constraints import forces, joints, links, multibody
 from dbdjax.model import Model
 
@@ -36,8 +39,10 @@ class Family(NamedTuple):
     num_multipliers: int
 
 
-def families(model: Model, control: jnp.ndarray | None, h: float, dtype) -> list[Family]:
-    """Every constraint family of `model`, with this step's control, for substeps of h seconds."""
+def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float,
+             dtype) -> list[Family]:  # fmt: skip
+    """Every constraint family of `model`, with this step's control and contact slots, for
+    substeps of h seconds (contact groups last)."""
     structure = model.structure
     tables = structure.family_bodies()
     world = structure.num_bodies
@@ -60,11 +65,31 @@ def families(model: Model, control: jnp.ndarray | None, h: float, dtype) -> list
         Family("volumes", tables[4], model.volumes, np.zeros(len(tables[4]), bool),
                lambda p, _, bodies, lam: multibody.project_volume(p, bodies, lam), 1),
     ]  # fmt: skip
-    for group, params, table in zip(structure.force_groups, model.forces, tables[5:], strict=True):
+    force_tables = tables[5 : 5 + len(structure.force_groups)]
+    for group, params, table in zip(structure.force_groups, model.forces, force_tables, strict=True):
         k = table.shape[1]
         project = functools.partial(_project_force_flat, group.function, h=h, k=k)
         result.append(Family(group.name, table, params, np.zeros(len(table), bool), project, 6 * k))
+    compliance_h2 = model.options.contact_compliance / h**2
+    for group, slots in zip(structure.contact_groups, contacts, strict=True):
+        project = functools.partial(contact.project_contacts, compliance_h2=compliance_h2,
+                                    sweeps=contact.SWEEPS)
+        result.append(Family(group.name, group.bodies.array, slots, on_world(group.bodies.array), project,
+                             contact.MULTIPLIERS_PER_POINT * group.num_points))  # fmt: skip
     return result
+
+
+def restitution_families(model: Model, contacts: tuple[ContactSlots, ...], h: float) -> list[Family]:
+    """The contact groups as velocity-pass families (multipliers: the solve's lambda_n (P,)).
+    Impacts slower than 2 |g| h do not bounce: that is the speed gravity alone builds up in a
+    substep or two, and bouncing it would keep resting bodies jittering."""
+    slow = 2.0 * math.safe_norm(model.gravity) * h
+    project = functools.partial(contact.project_restitution, slow=slow, sweeps=contact.SWEEPS)
+    return [
+        Family(group.name, group.bodies.array, slots, group.bodies.array == model.num_bodies, project,
+               group.num_points)
+        for group, slots in zip(model.structure.contact_groups, contacts, strict=True)
+    ]  # fmt: skip
 
 
 def _project_force_flat(function, params, _, bodies, multipliers, h, k):

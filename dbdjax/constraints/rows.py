@@ -113,7 +113,8 @@ class Rule(NamedTuple):
     relaxation xi, regularization alpha, active (bool). inequality (bool): rigid rows only push.
     stiffness_h2 = k h^2 and damping_h = nu h for springs (both 0 for a rigid row; `spring`
     switches to the spring rule). bound: |lambda| <= bound (inf for none). speed_h: a motor's
-    target drift (target speed times h); `speed` switches to the motor rule.
+    target drift (target speed times h); `speed` switches to the motor rule. lower: a lower bound
+    on the accumulated lambda instead of -bound (contacts: lambda >= 0, projected Gauss-Seidel).
     """
 
     relaxation: jnp.ndarray
@@ -126,6 +127,7 @@ class Rule(NamedTuple):
     speed: bool = False
     speed_h: jnp.ndarray | float = 0.0
     bound: jnp.ndarray | float = jnp.inf
+    lower: jnp.ndarray | float | None = None
 
 
 def rigid(relaxation, regularization, active, inequality=False) -> Rule:
@@ -164,7 +166,8 @@ def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
         solvable = rule.active & (denominator > 0.0)
     step = -rule.relaxation * residual / jnp.where(solvable, denominator, 1.0)
     step = jnp.where(rule.inequality, jnp.maximum(step, 0.0), step)
-    step = jnp.clip(multiplier + step, -rule.bound, rule.bound) - multiplier
+    lower = -rule.bound if rule.lower is None else rule.lower
+    step = jnp.clip(multiplier + step, lower, rule.bound) - multiplier
     return jnp.where(solvable, step, 0.0)
 
 
@@ -262,3 +265,28 @@ def angular_spring(
         dtheta_b=pair.dtheta_b + math.matvec(pair.inv_inertia_b, step),
     )
     return moved, multiplier + step
+
+
+def point_inverse_mass(pair: BodyPair, direction: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jnp.ndarray) -> jnp.ndarray:
+    """w = n . M^-1 n for moving two body points apart along unit `direction`, DBD (86)-(87)."""
+    torque_a = math.cross(arm_a, direction)
+    torque_b = math.cross(arm_b, direction)
+    return (
+        pair.inv_mass_a
+        + pair.inv_mass_b
+        + math.dot(torque_a, math.matvec(pair.inv_inertia_a, torque_a))
+        + math.dot(torque_b, math.matvec(pair.inv_inertia_b, torque_b))
+    )
+
+
+def apply_point_impulse(pair: BodyPair, impulse: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jnp.ndarray) -> BodyPair:
+    """Apply the vector `impulse` (3,) at arm_a on a and its opposite at arm_b on b (DBD (88)).
+
+    The same formula moves displacements (impulse = kappa, kg m) and velocities (kg m/s).
+    """
+    return pair._replace(
+        dx_a=pair.dx_a + pair.inv_mass_a * impulse,
+        dx_b=pair.dx_b - pair.inv_mass_b * impulse,
+        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, impulse)),
+        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, impulse)),
+    )

@@ -1,0 +1,163 @@
+"""Contact and friction between shapes (DBD section 7), and the restitution velocity pass.
+
+One node is one shape pair with its P contact slots (collision.ContactSlots), projected point
+after point (Gauss-Seidel inside the node). Per point, at X* + dX:
+
+  normal    c = (p_b - p_a) . n >= 0                                   DBD (84)-(88)
+            one positional row; the accumulated lambda_n >= 0 is projected (projected
+            Gauss-Seidel: an over-push is taken back, never a pull). With contact_compliance
+            alpha, c + alpha / h^2 lambda_n = 0: a stiff spring (smoother gradients).
+  friction  the body points may not slide in the contact plane over the substep: the slip
+            (p_b - p_a) - offset, projected on the plane, is driven to zero along s (89)-(91);
+            the accumulated friction vector kappa is held inside the cone |kappa| <= mu lambda_n
+            (92)-(93), with mu = mu_d where the points were already sliding at the start of the
+            substep and mu_s where they were sticking: static friction at position level,
+            dynamic friction bounded by mu_d times the normal impulse. (93) switches to mu_d as
+            soon as the static cone is left inside the iterations; deciding by the motion at the
+            start of the substep instead keeps a box held by mu_s > tan(slope) > mu_d at rest,
+            where the iterates, whose normal impulses are still growing, would leave the cone.
+
+After the position solve, `restitution_point` sets the normal speed of every point that pushed
+(lambda_n > 0) to -e times its speed before the substep (0 for slow impacts, below 2 |g| h, so
+resting contacts do not jitter), as an impulse on the velocities (SI 2.1.4, (37)-(42)).
+Multipliers per point: (lambda_n, kappa (3,)) in kg m (impulse times h, like every DBD row).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dbdjax import math
+from dbdjax.collision import ContactSlots
+from dbdjax.constraints import rows as row
+from dbdjax.constraints.rows import BodyPair, BodySet
+
+MULTIPLIERS_PER_POINT = 4  # lambda_n, kappa along t1 and t2, one unused (a 4-aligned row)
+SWEEPS = 16  # Gauss-Seidel sweeps over a pair's points on its linearised coupling
+
+
+def _manifold(pair: BodyPair, slots: ContactSlots, world: np.ndarray, quat_a, quat_b):
+    """The P points' rows along (n, t1, t2) and their coupling, linearised at the current pose.
+
+    Returns (directions (P, 3, 3), turn_a, turn_b (P, 3, 3): the rotation of a and b per unit
+    multiplier, arms (arm_a, arm_b) (P, 3), coupling K (3P, 3P) = J M~^-1 J^T, DBD (86)-(87) for
+    every pair of rows). A unit multiplier on row (i, k) pushes b along d_ik and a against it.
+    """
+    tangent = math.any_perpendicular(slots.normal)
+    directions = jnp.stack([slots.normal, tangent, math.cross(slots.normal, tangent)], axis=1)
+    local_a, local_b = slots.local_a, slots.local_b
+    arm_a = jnp.where(world[0], 0.0, math.quat_rotate(quat_a, local_a))
+    arm_b = jnp.where(world[1], 0.0, math.quat_rotate(quat_b, local_b))
+    torque_a = math.cross(arm_a[:, None, :], directions)
+    torque_b = math.cross(arm_b[:, None, :], directions)
+    turn_a = jnp.einsum("ij,pkj->pki", pair.inv_inertia_a, torque_a)
+    turn_b = jnp.einsum("ij,pkj->pki", pair.inv_inertia_b, torque_b)
+    rows = directions.shape[0] * 3
+    coupling = (
+        (pair.inv_mass_a + pair.inv_mass_b) * jnp.einsum("pki,qli->pkql", directions, directions)
+        + jnp.einsum("pki,qli->pkql", torque_a, turn_a)
+        + jnp.einsum("pki,qli->pkql", torque_b, turn_b)
+    ).reshape(rows, rows)
+    return directions, turn_a, turn_b, (arm_a, arm_b), coupling
+
+
+def _move(pair: BodyPair, impulse: jnp.ndarray, directions, turn_a, turn_b) -> BodyPair:
+    """Apply multiplier increments (P, 3) along the rows: b along d, a against it."""
+    push = jnp.einsum("pk,pki->i", impulse, directions)
+    return pair._replace(
+        dx_a=pair.dx_a - pair.inv_mass_a * push,
+        dx_b=pair.dx_b + pair.inv_mass_b * push,
+        dtheta_a=pair.dtheta_a - jnp.einsum("pk,pki->i", impulse, turn_a),
+        dtheta_b=pair.dtheta_b + jnp.einsum("pk,pki->i", impulse, turn_b),
+    )
+
+
+def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, multipliers: jnp.ndarray,
+                     compliance_h2: float, sweeps: int):  # fmt: skip
+    """Normal and friction rows of one shape pair's P points (DBD (84)-(93)).
+
+    The rows of one pair share two bodies and are strongly coupled through the rotations (a
+    box's four corners). They are solved together: errors evaluated at X* + dX (DBD 4.1), the
+    coupling K linearised there, then `sweeps` projected Gauss-Seidel sweeps over the points on
+    that small system (normal: lambda_n >= 0; friction: (92)-(93) on the tangent impulse), and
+    the total increment applied once.
+
+    slots: one pair's `ContactSlots` (arrays with leading axis P, materials ()). world: (2,) bool.
+    multipliers: (4 P,) per point (lambda_n, kappa_t1, kappa_t2, unused). compliance_h2: contact
+    compliance / h^2. Returns (dx (2, 3), dtheta (2, 3), multipliers).
+    """
+    pair = BodyPair.of(bodies)
+    points = slots.active.shape[0]
+    lam = multipliers.reshape(points, MULTIPLIERS_PER_POINT)[:, :3]
+    quat_a, quat_b = pair.current_quats()
+    delta, _, _ = row.anchor_points(pair, slots.local_a, slots.local_b, world[0], world[1], quat_a, quat_b)
+    directions, turn_a, turn_b, _, coupling = _manifold(pair, slots, world, quat_a, quat_b)
+    # errors of the rows: the gap (p_b - p_a) . n (84) and the slip in the plane (89)
+    error = jnp.einsum("pki,pi->pk", directions, -delta - slots.offset)
+    error = error.at[:, 0].set(-jnp.einsum("pi,pi->p", delta, slots.normal))
+    diagonal = jnp.diagonal(coupling).reshape(points, 3)
+    blocks = coupling.reshape(points, 3, points, 3)
+    solvable = slots.active & (diagonal[:, 0] > 0.0)
+
+    def point(i, increment):
+        residual = error[i] + blocks[i].reshape(3, -1) @ increment.reshape(-1)  # row errors after the increment
+        total = lam[i] + increment[i]
+        normal = jnp.maximum(total[0] - (residual[0] + compliance_h2 * total[0]) / jnp.where(
+            solvable[i], diagonal[i, 0] + compliance_h2, 1.0), 0.0)  # fmt: skip
+        slip = residual[1:] + blocks[i, 1:, i, 0] * (normal - total[0])
+        # (90)-(92): a step along the slip direction s with the effective mass along s. (A full
+        # 2 x 2 solve would converge to friction along B^-1 slip, not against the slip: a box
+        # sliding on its corners would feel ~6% less friction than mu N.)
+        squared = slip @ slip
+        along = slip @ (blocks[i, 1:, i, 1:] @ slip)
+        ok = along > 1e-30 * jnp.maximum(squared, 1e-30)
+        kappa = total[1:] - jnp.where(ok, squared / jnp.where(ok, along, 1.0), 0.0) * slip
+        kappa_direction, kappa_size = math.safe_normalize(jnp.concatenate([kappa, jnp.zeros(1, kappa.dtype)]))
+        bound = jnp.where(slots.sliding[i], slots.dynamic_friction, slots.friction) * normal
+        kappa = jnp.where(kappa_size > bound, bound * kappa_direction[:2], kappa)  # (93)
+        new = jnp.where(solvable[i], jnp.concatenate([normal[None], kappa]), total)
+        return increment.at[i].set(new - lam[i])
+
+    def sweep(increment, _):
+        return jax.lax.fori_loop(0, points, point, increment), None
+
+    increment, _ = jax.lax.scan(sweep, jnp.zeros_like(lam), None, length=sweeps)
+    pair = _move(pair, increment, directions, turn_a, turn_b)
+    lam = jnp.concatenate([lam + increment, jnp.zeros((points, 1), lam.dtype)], axis=1)
+    return *pair.displacements(), lam.reshape(-1)
+
+
+def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet, normal_multipliers: jnp.ndarray,
+                        slow: float, sweeps: int):  # fmt: skip
+    """The velocity pass of one shape pair: restitution on the points that pushed.
+
+    bodies: the velocity view (vel/ang_vel the velocities after the position solve, dx/dtheta
+    the velocity changes of this pass so far). normal_multipliers: (P,) lambda_n of the solve.
+    slow: m/s, impacts slower than this do not bounce (2 |g| h). The normal speeds of the pushed
+    points are set to their targets together (Gauss-Seidel sweeps on the pair's coupling, as in
+    `project_contacts`). Returns (dv (2, 3), dw (2, 3), normal_multipliers).
+    """
+    pair = BodyPair.of(bodies)
+    points = slots.active.shape[0]
+    directions, turn_a, turn_b, (arm_a, arm_b), coupling = _manifold(pair, slots, world, pair.quat_a, pair.quat_b)
+    speed_a = pair.vel_a + pair.dx_a + math.cross(pair.ang_vel_a + pair.dtheta_a, arm_a)
+    speed_b = pair.vel_b + pair.dx_b + math.cross(pair.ang_vel_b + pair.dtheta_b, arm_b)
+    bounce = jnp.where(slots.approach < -slow, slots.restitution, 0.0)
+    target = jnp.maximum(-bounce * slots.approach, 0.0)
+    error = jnp.einsum("pi,pi->p", speed_b - speed_a, slots.normal) - target
+    normal_coupling = coupling.reshape(points, 3, points, 3)[:, 0, :, 0]
+    pushed = slots.active & (normal_multipliers > 0.0) & (jnp.diagonal(normal_coupling) > 0.0)
+
+    def point(i, increment):
+        step = -(error[i] + normal_coupling[i] @ increment) / jnp.where(pushed[i], normal_coupling[i, i], 1.0)
+        return increment.at[i].add(jnp.where(pushed[i], step, 0.0))
+
+    def sweep(increment, _):
+        return jax.lax.fori_loop(0, points, point, increment), None
+
+    increment, _ = jax.lax.scan(sweep, jnp.zeros(points, error.dtype), None, length=sweeps)
+    impulse = jnp.stack([increment, jnp.zeros_like(increment), jnp.zeros_like(increment)], axis=1)
+    pair = _move(pair, impulse, directions, turn_a, turn_b)
+    return *pair.displacements(), normal_multipliers
