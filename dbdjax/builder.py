@@ -310,8 +310,9 @@ class ModelBuilder:
             raise ValueError(f"{label}: body = {body} is not a body index "
                              f"(there are {len(self._bodies)} bodies; the world is {WORLD})")  # fmt: skip
         friction = self._non_negative(friction, f"{label}: friction")
-        dynamic = friction if dynamic_friction is None else self._non_negative(dynamic_friction,
-                                                                               f"{label}: dynamic_friction")
+        dynamic = (
+            friction if dynamic_friction is None else self._non_negative(dynamic_friction, f"{label}: dynamic_friction")
+        )
         if dynamic > friction:
             raise ValueError(f"{label}: dynamic_friction {dynamic} exceeds the static friction {friction} "
                              "(the dry friction model of DBD 7.1 needs mu_d <= mu_s)")  # fmt: skip
@@ -322,9 +323,20 @@ class ModelBuilder:
             if not isinstance(bits, (int, np.integer)) or isinstance(bits, bool) or bits < 0:
                 raise ValueError(f"{label}: {what} must be a non-negative int (bit mask), got {bits!r}")
         self._shapes.append(
-            _Shape(name or label, kind, int(body), size, _vector(pos, 3, f"{label}: pos"),
-                   _quat(quat, f"{label}: quat"), friction, dynamic, restitution,
-                   self._positive(density, f"{label}: density"), int(contype), int(conaffinity))  # fmt: skip
+            _Shape(
+                name or label,
+                kind,
+                int(body),
+                size,
+                _vector(pos, 3, f"{label}: pos"),
+                _quat(quat, f"{label}: quat"),
+                friction,
+                dynamic,
+                restitution,
+                self._positive(density, f"{label}: density"),
+                int(contype),
+                int(conaffinity),
+            )  # fmt: skip
         )
         return len(self._shapes) - 1
 

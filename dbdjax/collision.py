@@ -893,10 +893,16 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
         restitution = jnp.maximum(shapes.restitution[shape[:, 0]], shapes.restitution[shape[:, 1]])
         result.append(
             ContactSlots(
-                local_a=local_a, local_b=local_b, normal=contacts.normal, offset=offset,
-                approach=_dot(speed_b - speed_a, contacts.normal), sliding=safe_norm(tangential) > creep,
+                local_a=local_a,
+                local_b=local_b,
+                normal=contacts.normal,
+                offset=offset,
+                approach=_dot(speed_b - speed_a, contacts.normal),
+                sliding=safe_norm(tangential) > creep,
                 active=contacts.active,
-                friction=friction, dynamic_friction=dynamic, restitution=restitution,
+                friction=friction,
+                dynamic_friction=dynamic,
+                restitution=restitution,
             )  # fmt: skip
         )
     return tuple(result)

@@ -72,8 +72,7 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         result.append(Family(group.name, table, params, np.zeros(len(table), bool), project, 6 * k))
     compliance_h2 = model.options.contact_compliance / h**2
     for group, slots in zip(structure.contact_groups, contacts, strict=True):
-        project = functools.partial(contact.project_contacts, compliance_h2=compliance_h2,
-                                    sweeps=contact.SWEEPS)
+        project = functools.partial(contact.project_contacts, compliance_h2=compliance_h2, sweeps=contact.SWEEPS)
         result.append(Family(group.name, group.bodies.array, slots, on_world(group.bodies.array), project,
                              contact.MULTIPLIERS_PER_POINT * group.num_points))  # fmt: skip
     return result

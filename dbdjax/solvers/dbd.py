@@ -138,7 +138,7 @@ def solve(
                                                     multipliers)  # fmt: skip
     else:
         dx = dtheta = jnp.zeros((n + 1, 3), dtype)
-    contact_lams = multipliers[len(all_families) - len(contacts):]
+    contact_lams = multipliers[len(all_families) - len(contacts) :]
     normal = tuple(lam.reshape(len(lam), -1, 4)[..., 0] for lam in contact_lams)
     return dx[:n], dtheta[:n], normal
 
