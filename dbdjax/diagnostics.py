@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from dbdjax import math
+from dbdjax.constraints import rows
+from dbdjax.constraints.rows import BodyPair
 from dbdjax.model import SLIDER, Model, State
 
 
@@ -16,20 +18,25 @@ def _world_inertia(model: Model, state: State) -> jnp.ndarray:
 def joint_gaps(model: Model, state: State) -> jnp.ndarray:
     """Distance (m) between the two anchor points of every joint, (..., J).
 
-    For a slider only the part across the axis counts (travel along it is free).
+    For a slider only the part across the axis counts (travel along it is free). The points are
+    the solver's own (`rows.anchor_points`), from differences of like terms.
     """
     structure = model.structure
     if structure.num_joints == 0:
         return jnp.zeros(state.pos.shape[:-2] + (0,), state.pos.dtype)
     pad = [(0, 0)] * (state.pos.ndim - 2)
-    pos = jnp.pad(state.pos, pad + [(0, 1), (0, 0)])
+    pos = jnp.pad(state.pos, pad + [(0, 1), (0, 0)])  # the world: row N, at the origin
     quat = jnp.concatenate(
         [state.quat, jnp.broadcast_to(math.quat_identity(), state.quat.shape[:-2] + (1, 4))], axis=-2
     )
     a, b = structure.joint_body_a.array, structure.joint_body_b.array
-    point_a = pos[..., a, :] + math.quat_rotate(quat[..., a, :], model.joints.local_anchor_a)
-    point_b = pos[..., b, :] + math.quat_rotate(quat[..., b, :], model.joints.local_anchor_b)
-    delta = point_a - point_b
+    world = structure.num_bodies
+    zero = jnp.zeros((), state.pos.dtype)
+    pair = BodyPair(*([zero] * len(BodyPair._fields)))._replace(origin_a=pos[..., a, :], origin_b=pos[..., b, :])
+    delta, _, _ = rows.anchor_points(
+        pair, model.joints.local_anchor_a, model.joints.local_anchor_b, (a == world)[:, None], (b == world)[:, None],
+        quat[..., a, :], quat[..., b, :],
+    )  # fmt: skip
     axis = math.quat_rotate(quat[..., a, :], model.joints.local_axis_a)
     slider = jnp.asarray(structure.joint_kind.array == SLIDER)
     delta = delta - jnp.where(slider[:, None], math.dot(delta, axis)[..., None] * axis, 0.0)

@@ -128,3 +128,25 @@ def test_ball_joint_pulls_separated_anchors_together_without_blowing_up():
     assert np.all(np.isfinite(np.asarray(trajectory.pos)))
     speed = np.linalg.norm(np.asarray(trajectory.vel[-1]), axis=-1)
     assert speed.max() < 10.0, "the recovery must not fling the bodies"
+
+
+def test_ball_joint_closes_a_small_gap_in_any_direction_in_one_projection():
+    # Two slender rods end to end: the effective mass of the joint point is far larger along the
+    # rods than across them. The point constraint is one block of three rows with that full 3x3
+    # effective mass (DBD (64)-(66)), so one projection removes a small gap in any direction up to
+    # second order; a single row along the gap (the magnitude form (54)) leaves a residual across
+    # it of the order of the gap itself.
+    with jax.enable_x64(True):
+        b = dbd.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        first = b.add_body(pos=(-0.05, 0, 0), mass=scenes.LINK_MASS, inertia=scenes.LINK_INERTIA)
+        second = b.add_body(pos=(0.05, 0, 0), mass=scenes.LINK_MASS, inertia=scenes.LINK_INERTIA)
+        b.add_ball_joint(first, second, anchor=(0, 0, 0))
+        model = b.finalize(dt=1 / 60, iterations=1)
+        offset = 1e-6 * np.array([0.6, -0.48, 0.64])  # |offset| = 1e-6 m, along no axis of K
+        joints = dataclasses.replace(model.joints, local_anchor_b=model.joints.local_anchor_b + offset)
+        model = dataclasses.replace(model, joints=joints)
+        start = dbd.init(model)
+        before = float(dbd.diagnostics.joint_gaps(model, start)[0])
+        after = float(dbd.diagnostics.joint_gaps(model, dbd.step(model, start))[0])
+    assert before == pytest.approx(1e-6)
+    assert after < 1e-3 * before, f"gap {before:.3e} m -> {after:.3e} m after one projection"

@@ -6,14 +6,14 @@ the joint). One function serves every kind: the rows a kind does not have are in
 multiplier step is zero), so a colour group of mixed kinds is a single `jax.vmap`.
 
 Row by kind:
-  ball   point (DBD 5, magnitude form (54)), cone (DBD (81)-(83)), twist limits,
+  ball   point (DBD 5, the vector form (64)-(66): one 3x3 block), cone (DBD (81)-(83)), twist limits,
          drive to a target relative orientation (DBD 9, (110)-(114), three-axis)
   hinge  point, axle alignment (DBD 6, (73)-(80); SI 2.4), angle limits (SI 2.4.5, clamped as
          DBD 6.1), drive to a target angle (DBD 9 about the axle), motor (SI 2.4.6)
   slider point off the axis (SI 2.3.1), rotation lock (SI (53)), travel limits (SI 2.3.5),
          motor (SI 2.3.6)
   fixed  point, rotation lock (SI 2.5)
-Drives and motors go first so that the hard rows, and the point row last of all, have the last word.
+Drives and motors go first so that the hard rows, and the point block last of all, have the last word.
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
 from dbdjax.model import BALL, FIXED, HINGE, SLIDER, Joints, Structure
 
-# Multipliers of one joint, in the order of `project`'s rows (a ball drive owns three).
+# Multipliers of one joint, in the order of `project`'s rows. The ball drive's torque and the
+# point block's impulse are 3-vectors: they own slots [DRIVE, DRIVE + 3) and [POINT, POINT + 3).
 DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 5, 6, 7
 TRAVEL_LOWER, TRAVEL_UPPER, POINT = 8, 9, 10
-NUM_MULTIPLIERS = 11
+NUM_MULTIPLIERS = POINT + 3
 
 
 class JointFlags(NamedTuple):
@@ -95,7 +96,7 @@ def targets(structure: Structure, control: jnp.ndarray | None, dtype) -> Targets
 def rows_in_use(structure: Structure) -> frozenset[str]:
     """The kinds of row some joint of the model has (the names of `JointFlags`, plus "point").
     The others are left out of the trace altogether: a chain of ball joints compiles to the point
-    row alone."""
+    block alone."""
     f = flags(structure)
     used = {name for name, values in f._asdict().items() if values.any()}
     if (f.hinge | f.rotation_locked).any():
@@ -242,14 +243,22 @@ def project(
                 pair, sign * axis, arm_a, arm_b, error, lam[index], hard(flag.has_travel_limits, inequality=True)
             )
 
-    # Point constraint last, so the joint gap is what this sweep leaves smallest: the distance
-    # between the joint points in the magnitude form (54)-(61) that conserves momentum (62)-(63).
+    # Point constraint last, so the joint gap is what this sweep leaves smallest: c = p_a - p_b as
+    # one block of three rows with the full 3x3 effective mass, DBD (64)-(66). Not the magnitude
+    # form |p_a - p_b| (54): that is a cone at zero gap, so the step map has a kink exactly where
+    # the joint holds (derivatives there disagree with finite differences), and its one row along
+    # the gap leaves what lies across it. The block conserves linear momentum exactly and angular
+    # momentum up to gap x impulse (63), which vanishes as the gap closes.
     # A slider only removes the part across its axis (SI (51)), acting level with p_b on a.
     quat_a, quat_b = pair.current_quats()
     delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
-    slide_axis = math.quat_rotate(quat_a, joint.local_axis_a)
-    along = jnp.where(flag.slider, math.dot(delta, slide_axis), 0.0)[..., None] * slide_axis
-    direction, gap = math.safe_normalize(delta - along)
-    pair, lam[POINT] = row.positional_row(pair, direction, arm_a - along, arm_b, gap, lam[POINT], hard(True))
+    slide_axis = None
+    if "slider" in rows:
+        slide_axis = jnp.where(flag.slider, math.quat_rotate(quat_a, joint.local_axis_a), 0.0)
+        arm_a = arm_a - math.dot(delta, slide_axis)[..., None] * slide_axis
+    pair, point = row.point_block(
+        pair, arm_a, arm_b, delta, jnp.stack(lam[POINT : POINT + 3]), hard(True), free_axis=slide_axis
+    )
+    lam[POINT : POINT + 3] = list(point)
     dx, dtheta = pair.displacements()
     return dx, dtheta, jnp.stack(lam)

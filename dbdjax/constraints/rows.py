@@ -17,6 +17,14 @@ kg m^2 for angular ones) and moves the bodies by dX += M~^-1 J^T d lambda (52). 
           c(X*) = c(X^t) + J h V*, the velocity term gains the "1 +" of (108)-(109) that XPBD's
           gamma lacks. The clamp |lambda| <= bound h^2 is the torque limit (114).
   speed   a motor: drift = target speed h, with |lambda| <= max force h^2 (SI 2.3.6, 2.4.6).
+
+A joint's point constraint is not a row but a block of three: the vector error c = p_a - p_b
+(DBD (64)) with J = (1, -[arm_a]x, -1, [arm_b]x) (65), solved at once with the 3x3 effective
+inverse mass K = (1/m_a + 1/m_b) 1 - [arm_a]x I_a^-1 [arm_a]x - [arm_b]x I_b^-1 [arm_b]x ((57),
+(66)) by the rigid rule in matrix form, d lambda = -xi (K + alpha 1)^-1 (c + alpha lambda), with
+a 3-vector lambda (`point_block`). Unlike the magnitude form |c| (54) it is linear in c, so the
+update is smooth where the joint is closed, and one projection closes a small gap in every
+direction, not only along it.
 """
 
 from __future__ import annotations
@@ -267,26 +275,59 @@ def angular_spring(
     return moved, multiplier + step
 
 
-def point_inverse_mass(pair: BodyPair, direction: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jnp.ndarray) -> jnp.ndarray:
-    """w = n . M^-1 n for moving two body points apart along unit `direction`, DBD (86)-(87)."""
-    torque_a = math.cross(arm_a, direction)
-    torque_b = math.cross(arm_b, direction)
-    return (
-        pair.inv_mass_a
-        + pair.inv_mass_b
-        + math.dot(torque_a, math.matvec(pair.inv_inertia_a, torque_a))
-        + math.dot(torque_b, math.matvec(pair.inv_inertia_b, torque_b))
-    )
+def point_response(arm: jnp.ndarray, inv_mass: jnp.ndarray, inv_inertia: jnp.ndarray) -> jnp.ndarray:
+    """How the point at `arm` from a body's centre moves per unit impulse there, (3, 3):
+    1/m 1 - [arm]x I^-1 [arm]x, one body's term of DBD (57). Written column by column (no matmul):
+    the response to e_j is e_j / m + (I^-1 (arm x e_j)) x arm."""
+    eye = jnp.eye(3, dtype=arm.dtype)
+    turn = math.matvec(inv_inertia[None], math.cross(arm[None], eye))  # row j: I^-1 (arm x e_j)
+    columns = inv_mass * eye + math.cross(turn, arm[None])  # row j: the response to e_j
+    return jnp.swapaxes(columns, -1, -2)
 
 
-def apply_point_impulse(pair: BodyPair, impulse: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jnp.ndarray) -> BodyPair:
-    """Apply the vector `impulse` (3,) at arm_a on a and its opposite at arm_b on b (DBD (88)).
+def point_block(
+    pair: BodyPair,
+    arm_a: jnp.ndarray,
+    arm_b: jnp.ndarray,
+    error: jnp.ndarray,
+    multiplier: jnp.ndarray,
+    rule: Rule,
+    free_axis: jnp.ndarray | None = None,
+) -> tuple[BodyPair, jnp.ndarray]:
+    """Project the point constraint c = `error` (3,) m = p_a - p_b as one block of three rows,
+    DBD (64)-(66), by the rigid rule in matrix form (see the module docstring).
 
-    The same formula moves displacements (impulse = kappa, kg m) and velocities (kg m/s).
+    The impulse lambda (3,) kg m acts at arm_a from a's centre and -lambda at arm_b from b's.
+    multiplier: (3,) lambda so far this substep. rule: a `rigid` rule (relaxation xi,
+    regularisation alpha, active). free_axis: (3,) unit axis the block leaves free (a slider's,
+    SI (51)) or zero or None: the rows then span the plane across it, the error is taken in that
+    plane and so is the step. Returns the moved pair and the new multiplier.
     """
-    return pair._replace(
-        dx_a=pair.dx_a + pair.inv_mass_a * impulse,
-        dx_b=pair.dx_b - pair.inv_mass_b * impulse,
-        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, impulse)),
-        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, impulse)),
+    if rule.spring or rule.speed:
+        raise ValueError("point_block takes the rigid rule only")
+    eye = jnp.eye(3, dtype=error.dtype)
+    inverse_mass = (
+        point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a)
+        + point_response(arm_b, pair.inv_mass_b, pair.inv_inertia_b)
+        + rule.regularization * eye
+    )  # (57), (66), regularised as in (47)
+    residual = error + rule.regularization * multiplier
+    if free_axis is not None:
+        # Restricted to the plane across u: P K P + u u^T with P = 1 - u u^T. It maps the plane to
+        # itself and u to u, so with a residual in the plane the step stays in the plane too.
+        u = free_axis
+        k_u = math.matvec(inverse_mass, u)
+        outer = lambda x, y: x[..., :, None] * y[..., None, :]  # noqa: E731
+        inverse_mass = inverse_mass - outer(u, k_u) - outer(k_u, u) + (math.dot(u, k_u) + 1.0) * outer(u, u)
+        residual = residual - math.dot(residual, u) * u
+    determinant = math.dot(inverse_mass[0], math.cross(inverse_mass[1], inverse_mass[2]))
+    solvable = rule.active & (determinant > 0.0)  # K is positive definite unless both sides are static
+    solve = math.inverse3(jnp.where(solvable, inverse_mass, eye))
+    step = jnp.where(solvable, -rule.relaxation * math.matvec(solve, residual), 0.0)
+    moved = pair._replace(
+        dx_a=pair.dx_a + pair.inv_mass_a * step,
+        dx_b=pair.dx_b - pair.inv_mass_b * step,
+        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, step)),
+        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, step)),
     )
+    return moved, multiplier + step
