@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import colouring, shapes
+from dbdjax import colouring, host_math, shapes
 from dbdjax.collision import BOX, CAPSULE, PLANE, SPHERE, num_points
 from dbdjax.model import (
     BALL,
@@ -86,21 +86,6 @@ def _check_inertia(label: str, inertia: np.ndarray) -> None:
                 f"{label}: inertia {inertia.tolist()} violates the triangle inequality "
                 "(no rigid body has one principal moment larger than the other two together)"
             )
-
-
-def _rotate(quat: np.ndarray, vector: np.ndarray, inverse: bool = False) -> np.ndarray:
-    w, u = quat[0], quat[1:] * (-1.0 if inverse else 1.0)
-    t = 2.0 * np.cross(u, vector)
-    return vector + w * t + np.cross(u, t)
-
-
-def _multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    pw, pv, qw, qv = p[0], p[1:], q[0], q[1:]
-    return np.concatenate([[pw * qw - pv @ qv], pw * qv + qw * pv + np.cross(pv, qv)])
-
-
-def _conjugate(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
 @dataclasses.dataclass
@@ -281,9 +266,7 @@ class ModelBuilder:
         label = self._shape_label("plane", material.get("name"))
         normal = _unit(normal, f"{label}: normal")
         offset = _scalar(offset, f"{label}: offset")
-        # a pose whose local z is the normal: the shortest arc from +z, half a turn about x for -z
-        raw = np.array([1.0 + normal[2], -normal[1], normal[0], 0.0])
-        quat = raw / np.linalg.norm(raw) if np.linalg.norm(raw) > 1e-9 else np.array([0.0, 1.0, 0.0, 0.0])
+        quat = host_math.z_to(normal)  # the plane pose: local z is the normal
         return self._add_shape(label, PLANE, WORLD, np.zeros(3), offset * normal, quat, **material)
 
     def exclude_collision(self, body_a: int, body_b: int) -> None:
@@ -784,13 +767,16 @@ class ModelBuilder:
             else:
                 moments, turn = shapes.principal_axes(tensor)
             _check_inertia(f"body {index} ({body.name!r}), inertia from its shapes,", moments)
-            body.vel = body.vel + np.cross(body.ang_vel, _rotate(body.quat, centre))
-            body.pos = body.pos + _rotate(body.quat, centre)
-            body.quat = _multiply(body.quat, turn)
+            body.vel = body.vel + np.cross(body.ang_vel, host_math.rotate(body.quat, centre))
+            body.pos = body.pos + host_math.rotate(body.quat, centre)
+            body.quat = host_math.multiply(body.quat, turn)
             body.mass, body.inertia = mass, moments
             for i in own:  # shape pose in the new frame: turn^-1 (pos - centre), turn^-1 q
                 pos, quat = poses[i]
-                poses[i] = (_rotate(turn, pos - centre, inverse=True), _multiply(_conjugate(turn), quat))
+                poses[i] = (
+                    host_math.rotate(turn, pos - centre, inverse=True),
+                    host_math.multiply(host_math.conjugate(turn), quat),
+                )
         return resolved, poses
 
     @staticmethod
@@ -803,7 +789,7 @@ class ModelBuilder:
     def _local_point(self, bodies: list[_Body], index: int, point: np.ndarray) -> np.ndarray:
         """A world point at build time in the frame of body `index` (world coordinates for the world)."""
         pos, quat = self._frame(bodies, index)
-        return _rotate(quat, point - pos, inverse=True)
+        return host_math.rotate(quat, point - pos, inverse=True)
 
     def _contact_groups(self, num_bodies: int) -> tuple[ContactGroup, ...]:
         """The shape pairs that may touch, grouped by kind pair (kind_a <= kind_b).
@@ -825,10 +811,10 @@ class ModelBuilder:
                     continue
                 pair = (i, j) if first.kind <= second.kind else (j, i)
                 groups.setdefault((self._shapes[pair[0]].kind, self._shapes[pair[1]].kind), []).append(pair)
+        body_of = np.asarray([num_bodies if s.body == WORLD else s.body for s in self._shapes], dtype=np.int32)
         result = []
         for (kind_a, kind_b), pairs in sorted(groups.items()):
             table = np.asarray(pairs, dtype=np.int32).reshape(-1, 2)
-            body_of = np.asarray([num_bodies if s.body == WORLD else s.body for s in self._shapes], dtype=np.int32)
             result.append(ContactGroup(kind_a, kind_b, StaticArray(table), StaticArray(body_of[table]),
                                        num_points(kind_a, kind_b)))  # fmt: skip
         return tuple(result)
@@ -864,9 +850,9 @@ class ModelBuilder:
         joints = Joints(
             local_anchor_a=table([local_point(j.body_a, j.anchor) for j in js], 3),
             local_anchor_b=table([local_point(j.body_b, j.anchor) for j in js], 3),
-            local_axis_a=table([_rotate(frame(j.body_a)[1], j.axis, inverse=True) for j in js], 3),
-            local_axis_b=table([_rotate(frame(j.body_b)[1], j.axis, inverse=True) for j in js], 3),
-            rest_rotation=table([_multiply(_conjugate(frame(j.body_a)[1]), frame(j.body_b)[1])
+            local_axis_a=table([host_math.rotate(frame(j.body_a)[1], j.axis, inverse=True) for j in js], 3),
+            local_axis_b=table([host_math.rotate(frame(j.body_b)[1], j.axis, inverse=True) for j in js], 3),
+            rest_rotation=table([host_math.multiply(host_math.conjugate(frame(j.body_a)[1]), frame(j.body_b)[1])
                                  for j in js], 4),  # fmt: skip
             **{f: column(js, f) for f in ("lower", "upper", "cone_limit", "relaxation", "regularization",
                                           "drive_stiffness", "drive_damping", "drive_max_torque", "motor_max_force")},

@@ -78,6 +78,7 @@ from dbdjax.math import (
     safe_normalize,
     safe_sqrt,
 )
+from dbdjax.model import with_world_row
 
 PLANE, SPHERE, CAPSULE, BOX = 0, 1, 2, 3
 KIND_NAMES = {PLANE: "plane", SPHERE: "sphere", CAPSULE: "capsule", BOX: "box"}
@@ -830,11 +831,6 @@ class ContactSlots(NamedTuple):
     restitution: jnp.ndarray
 
 
-def _with_world(array: jnp.ndarray, world_value) -> jnp.ndarray:
-    row = jnp.broadcast_to(jnp.asarray(world_value, array.dtype), (1,) + array.shape[1:])
-    return jnp.concatenate([array, row], axis=0)
-
-
 def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
     """Contact slots of every contact group of `model` at the predicted poses.
 
@@ -846,14 +842,14 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
     dtype = predicted.pos.dtype
     identity = jnp.array([1.0, 0.0, 0.0, 0.0], dtype)
     # row N is the world: shapes on it are posed in world coordinates
-    pos = _with_world(predicted.pos, 0.0)
-    quat = _with_world(predicted.quat, identity)
-    start_pos = _with_world(start.pos, 0.0)
-    start_quat = _with_world(start.quat, identity)
-    vel = _with_world(predicted.vel, 0.0)
-    ang_vel = _with_world(predicted.ang_vel, 0.0)
-    start_vel = _with_world(start.vel, 0.0)
-    start_ang_vel = _with_world(start.ang_vel, 0.0)
+    pos = with_world_row(predicted.pos, 0.0)
+    quat = with_world_row(predicted.quat, identity)
+    start_pos = with_world_row(start.pos, 0.0)
+    start_quat = with_world_row(start.quat, identity)
+    vel = with_world_row(predicted.vel, 0.0)
+    ang_vel = with_world_row(predicted.ang_vel, 0.0)
+    start_vel = with_world_row(start.vel, 0.0)
+    start_ang_vel = with_world_row(start.ang_vel, 0.0)
     creep = safe_norm(model.gravity) * h  # below this tangential speed a contact is sticking
     result = []
     for group in structure.contact_groups:

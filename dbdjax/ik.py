@@ -77,7 +77,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import math
+from dbdjax import host_math, math
 from dbdjax.model import BALL, FIXED, HINGE, JOINT_KIND_NAMES, WORLD, Model
 
 JOINT_KINDS = ("hinge", "ball")
@@ -347,13 +347,13 @@ class Chain:
                 local_anchor, local_axis, joint_rest, child_anchor = anchor_a[j], axis_a[j], rest[j], anchor_b[j]
             else:  # q_a = q_b exp(theta (-u_b)) rest^-1: the same angle, seen from b
                 local_anchor, local_axis, child_anchor = anchor_b[j], -axis_b[j], anchor_a[j]
-                joint_rest = _conj(rest[j])
+                joint_rest = host_math.conjugate(rest[j])
             # The joint's parent body may be welded to the link frame: W = Q_link^-1 q_parent.
-            weld = _qmul(_conj(f_quat), p_quat)
-            pivot_world = p_pos + _rot(p_quat, local_anchor)
-            rows["parent_anchor"].append(_rot(_conj(f_quat), pivot_world - f_pos))
-            rows["axis"].append(_rot(weld, local_axis))
-            rows["rest"].append(_qmul(weld, joint_rest))
+            weld = host_math.multiply(host_math.conjugate(f_quat), p_quat)
+            pivot_world = p_pos + host_math.rotate(p_quat, local_anchor)
+            rows["parent_anchor"].append(host_math.rotate(host_math.conjugate(f_quat), pivot_world - f_pos))
+            rows["axis"].append(host_math.rotate(weld, local_axis))
+            rows["rest"].append(host_math.multiply(weld, joint_rest))
             rows["child_anchor"].append(child_anchor)
             is_hinge = kinds[j] == HINGE
             has_limits = bool(structure.joint_has_limits.array[j]) and is_hinge
@@ -380,13 +380,15 @@ class Chain:
                 continue  # not moved by the chain
             k = on_route[-1]
             l_pos, l_quat = frame(link_body[k])
-            r = _rot(_conj(l_quat), pos0[body] - l_pos)
-            rotation = _matrix(_qmul(_conj(l_quat), quat0[body]))
+            r = host_math.rotate(host_math.conjugate(l_quat), pos0[body] - l_pos)
+            rotation = host_math.to_matrix(host_math.multiply(host_math.conjugate(l_quat), quat0[body]))
             mass[k] += body_mass[body]
             first_moment[k] += body_mass[body] * r
-            about_origin[k] += rotation @ np.diag(body_inertia[body]) @ rotation.T + body_mass[body] * _shift(r)
+            own = rotation @ np.diag(body_inertia[body]) @ rotation.T
+            about_origin[k] += own + body_mass[body] * host_math.parallel_axis(r)
         com = first_moment / mass[:, None]
-        inertia = about_origin - mass[:, None, None] * np.stack([_shift(c) for c in com])  # parallel axes
+        shift = np.stack([host_math.parallel_axis(c) for c in com])
+        inertia = about_origin - mass[:, None, None] * shift  # parallel axes
         for k in range(n):
             _check_inertia(inertia[k], f"Chain.from_model: link of joint {chain_names[k]!r}")
 
@@ -397,7 +399,7 @@ class Chain:
         parent_anchor[0] = 0.0
         end_pos, end_quat = frame(end_body)
         l_pos, l_quat = frame(link_body[-1])
-        tip_world = end_pos + _rot(end_quat, np.asarray(tip, dtype=np.float64))
+        tip_world = end_pos + host_math.rotate(end_quat, np.asarray(tip, dtype=np.float64))
         return cls(
             base_pos=jnp.asarray(root),
             base_quat=jnp.asarray(identity),
@@ -410,7 +412,7 @@ class Chain:
             inertia=jnp.asarray(inertia),
             lower=jnp.asarray(np.asarray(rows["lower"])),
             upper=jnp.asarray(np.asarray(rows["upper"])),
-            tip=jnp.asarray(_rot(_conj(l_quat), tip_world - l_pos)),
+            tip=jnp.asarray(host_math.rotate(host_math.conjugate(l_quat), tip_world - l_pos)),
             kinds=tuple(chain_kinds),
             limited=tuple(chain_limited),
             names=tuple(chain_names),
@@ -443,30 +445,6 @@ class LinkPoses(NamedTuple):
 
 
 # ---------------------------------------------------------------------------- host-side helpers
-def _rot(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    w, u = q[0], q[1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    pw, pv, qw, qv = p[0], p[1:], q[0], q[1:]
-    return np.concatenate([[pw * qw - pv @ qv], pw * qv + qw * pv + np.cross(pv, qv)])
-
-
-def _conj(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _matrix(q: np.ndarray) -> np.ndarray:
-    return np.stack([_rot(q, e) for e in np.eye(3)], axis=-1)
-
-
-def _shift(r: np.ndarray) -> np.ndarray:
-    """|r|^2 1 - r r^T: the parallel-axis term, = -[r]x [r]x."""
-    return (r @ r) * np.eye(3) - np.outer(r, r)
-
-
 def _check_inertia(inertia: np.ndarray, label: str) -> None:
     if not np.all(np.isfinite(inertia)) or not np.allclose(inertia, inertia.T, rtol=1e-9, atol=1e-12):
         raise ValueError(f"{label}: inertia must be a finite symmetric 3x3 matrix, got {inertia.tolist()}")

@@ -18,6 +18,14 @@ import numpy as np
 WORLD = -1
 """Body index of the static world, accepted wherever a body index is."""
 
+
+def with_world_row(array: jnp.ndarray, world_value: jnp.ndarray | float = 0.0) -> jnp.ndarray:
+    """Append the world as row N of a per-body array (N, ...) -> (N + 1, ...): the index the
+    solver's tables give the world (static: zero velocity, identity pose, zero inverse mass)."""
+    row = jnp.broadcast_to(jnp.asarray(world_value, array.dtype), (1,) + array.shape[1:])
+    return jnp.concatenate([array, row], axis=0)
+
+
 # Joint kinds (`Structure.joint_kind`).
 BALL, HINGE, SLIDER, FIXED = 0, 1, 2, 3
 JOINT_KIND_NAMES = ("ball", "hinge", "slider", "fixed")

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from dbdjax import host_math
 from dbdjax.collision import BOX, CAPSULE, SPHERE
 
 
@@ -43,38 +44,6 @@ def volume_and_inertia(kind: int, size: np.ndarray) -> tuple[float, np.ndarray]:
     raise ValueError(f"shape kind {kind} has no volume (a plane is static)")
 
 
-def rotation_matrix(quat: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = quat
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a proper rotation matrix (Shepperd's method)."""
-    trace = np.trace(rotation)
-    if trace > 0.0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        quat = [0.25 * s, (rotation[2, 1] - rotation[1, 2]) / s, (rotation[0, 2] - rotation[2, 0]) / s,
-                (rotation[1, 0] - rotation[0, 1]) / s]  # fmt: skip
-    else:
-        i = int(np.argmax(np.diag(rotation)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + rotation[i, i] - rotation[j, j] - rotation[k, k])
-        quat = [0.0, 0.0, 0.0, 0.0]
-        quat[0] = (rotation[k, j] - rotation[j, k]) / s
-        quat[1 + i] = 0.25 * s
-        quat[1 + j] = (rotation[j, i] + rotation[i, j]) / s
-        quat[1 + k] = (rotation[k, i] + rotation[i, k]) / s
-    quat = np.asarray(quat)
-    return quat / np.linalg.norm(quat) * (1.0 if quat[0] >= 0.0 else -1.0)
-
-
 def mass_properties(
     kinds: Sequence[int], sizes: Sequence[np.ndarray], positions: Sequence[np.ndarray],
     quats: Sequence[np.ndarray], densities: Sequence[float],
@@ -87,14 +56,14 @@ def mass_properties(
     parts = []
     for kind, size, pos, quat, density in zip(kinds, sizes, positions, quats, densities, strict=True):
         volume, inertia = volume_and_inertia(kind, size)
-        rotation = rotation_matrix(quat)
+        rotation = host_math.to_matrix(quat)
         parts.append((density * volume, pos, rotation @ np.diag(density * inertia) @ rotation.T))
         mass += density * volume
         moment += density * volume * pos
     centre = moment / mass
     for part_mass, pos, part_tensor in parts:
         offset = pos - centre
-        tensor += part_tensor + part_mass * (offset @ offset * np.eye(3) - np.outer(offset, offset))
+        tensor += part_tensor + part_mass * host_math.parallel_axis(offset)
     return mass, centre, tensor
 
 
@@ -109,7 +78,7 @@ def principal_axes(tensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     moments, axes = np.linalg.eigh(tensor)
     if np.linalg.det(axes) < 0.0:
         axes[:, 2] = -axes[:, 2]
-    return moments, matrix_to_quat(axes)
+    return moments, host_math.from_matrix(axes)
 
 
 def may_collide(contype_a: int, conaffinity_a: int, contype_b: int, conaffinity_b: int) -> bool:

@@ -154,8 +154,9 @@ def test_shapes_dropped_on_a_static_shape_do_not_penetrate_at_any_orientation(fa
         b.add_capsule(dbd.WORLD, 0.1, 0.5, pos=(0, 0, -0.1), quat=floor_quat)
     model = b.finalize(dt=1 / 60, substeps=2, iterations=8)
     start = dbd.init(model)
-    states = jax.tree.map(lambda x: jnp.stack([x] * len(_TILTS)), start)
-    states = dataclasses_replace_quat(states, jnp.asarray(list(_TILTS.values()), start.quat.dtype)[:, None, :])
+    tilts = jnp.asarray(list(_TILTS.values()), start.quat.dtype)[:, None, :]  # (orientations, 1 body, 4)
+    batch = lambda x: jnp.stack([x] * len(_TILTS))  # noqa: E731
+    states = dbd.State(pos=batch(start.pos), quat=tilts, vel=batch(start.vel), ang_vel=batch(start.ang_vel))
     _, trajectory = jax.vmap(lambda s: dbd.rollout(model, s, steps=60))(states)  # (tilts, T, ...)
     group = model.structure.contact_groups[0]
     kind_a, kind_b = group.kind_a, group.kind_b
@@ -184,10 +185,6 @@ def test_shapes_dropped_on_a_static_shape_do_not_penetrate_at_any_orientation(fa
     assert depth[:, -20:].min() > -1e-3, report
     touched = np.asarray(trajectory.pos[:, -1, 0, 2]) < 0.4
     assert touched.all()  # every orientation reached the floor
-
-
-def dataclasses_replace_quat(state, quat):
-    return dbd.State(pos=state.pos, quat=quat, vel=state.vel, ang_vel=state.ang_vel)
 
 
 # ------------------------------------------------------------------------------ options
@@ -234,9 +231,8 @@ def test_gradients_through_contact_are_finite(scene, float64):
     if scene == "sliding":
         model, _ = _box_on_incline(35.0, 0.5)
     else:
-        b = dbd.ModelBuilder()
-        height = {"resting": 0.1, "separating": 0.1, "touching": 0.1}[scene]
-        box = b.add_body(pos=(0, 0, height), vel=(0, 0, 2.0) if scene == "separating" else (0, 0, 0))
+        b = dbd.ModelBuilder()  # a box whose bottom face lies exactly on the plane
+        box = b.add_body(pos=(0, 0, 0.1), vel=(0, 0, 2.0) if scene == "separating" else (0, 0, 0))
         b.add_box(box, (0.1, 0.1, 0.1))
         b.add_plane()
         model = b.finalize(dt=1 / 60, iterations=4)

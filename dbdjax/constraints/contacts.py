@@ -1,12 +1,12 @@
 """Contact and friction between shapes (DBD section 7), and the restitution velocity pass.
 
-One node is one shape pair with its P contact slots (collision.ContactSlots), projected point
-after point (Gauss-Seidel inside the node). Per point, at X* + dX:
+One node is one shape pair with its P contact slots (collision.ContactSlots). Per point three
+rows, evaluated at X* + dX (the non-linear update of DBD 4.1):
 
   normal    c = (p_b - p_a) . n >= 0                                   DBD (84)-(88)
-            one positional row; the accumulated lambda_n >= 0 is projected (projected
-            Gauss-Seidel: an over-push is taken back, never a pull). With contact_compliance
-            alpha, c + alpha / h^2 lambda_n = 0: a stiff spring (smoother gradients).
+            the accumulated lambda_n >= 0 is projected (projected Gauss-Seidel: an over-push is
+            taken back, never a pull). With contact_compliance alpha, c + alpha / h^2 lambda_n
+            = 0: a stiff spring (smoother gradients).
   friction  the body points may not slide in the contact plane over the substep: the slip
             (p_b - p_a) - offset, projected on the plane, is driven to zero along s (89)-(91);
             the accumulated friction vector kappa is held inside the cone |kappa| <= mu lambda_n
@@ -17,10 +17,16 @@ after point (Gauss-Seidel inside the node). Per point, at X* + dX:
             start of the substep instead keeps a box held by mu_s > tan(slope) > mu_d at rest,
             where the iterates, whose normal impulses are still growing, would leave the cone.
 
-After the position solve, `restitution_point` sets the normal speed of every point that pushed
-(lambda_n > 0) to -e times its speed before the substep (0 for slow impacts, below 2 |g| h, so
-resting contacts do not jitter), as an impulse on the velocities (SI 2.1.4, (37)-(42)).
-Multipliers per point: (lambda_n, kappa (3,)) in kg m (impulse times h, like every DBD row).
+The rows of one pair share two bodies and are strongly coupled through rotation (a box's four
+corners), so a node solves them together: their coupling K = J M~^-1 J^T is linearised at the
+current pose and SWEEPS projected Gauss-Seidel sweeps run on that small system before the total
+is applied (point-by-point projection left a rotation every substep that made stacks rock).
+
+After the position solve, `project_restitution` sets the normal speed of every point that pushed
+(lambda_n > 0) to -e times its speed before the solve (0 for slow impacts, below 2 |g| h, so
+resting contacts do not jitter), as impulses on the velocities (SI 2.1.4, (37)-(42)).
+Multipliers per point: (lambda_n, kappa_t1, kappa_t2, unused), kg m (impulse times h, like
+every DBD row).
 """
 
 from __future__ import annotations
@@ -38,18 +44,15 @@ MULTIPLIERS_PER_POINT = 4  # lambda_n, kappa along t1 and t2, one unused (a 4-al
 SWEEPS = 16  # Gauss-Seidel sweeps over a pair's points on its linearised coupling
 
 
-def _manifold(pair: BodyPair, slots: ContactSlots, world: np.ndarray, quat_a, quat_b):
+def _manifold(pair: BodyPair, normal: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jnp.ndarray):
     """The P points' rows along (n, t1, t2) and their coupling, linearised at the current pose.
 
-    Returns (directions (P, 3, 3), turn_a, turn_b (P, 3, 3): the rotation of a and b per unit
-    multiplier, arms (arm_a, arm_b) (P, 3), coupling K (3P, 3P) = J M~^-1 J^T, DBD (86)-(87) for
+    normal, arm_a, arm_b: (P, 3). Returns (directions (P, 3, 3), turn_a, turn_b (P, 3, 3): the
+    rotation of a and b per unit multiplier, coupling K (3P, 3P) = J M~^-1 J^T, DBD (86)-(87) for
     every pair of rows). A unit multiplier on row (i, k) pushes b along d_ik and a against it.
     """
-    tangent = math.any_perpendicular(slots.normal)
-    directions = jnp.stack([slots.normal, tangent, math.cross(slots.normal, tangent)], axis=1)
-    local_a, local_b = slots.local_a, slots.local_b
-    arm_a = jnp.where(world[0], 0.0, math.quat_rotate(quat_a, local_a))
-    arm_b = jnp.where(world[1], 0.0, math.quat_rotate(quat_b, local_b))
+    tangent = math.any_perpendicular(normal)
+    directions = jnp.stack([normal, tangent, math.cross(normal, tangent)], axis=1)
     torque_a = math.cross(arm_a[:, None, :], directions)
     torque_b = math.cross(arm_b[:, None, :], directions)
     turn_a = jnp.einsum("ij,pkj->pki", pair.inv_inertia_a, torque_a)
@@ -60,7 +63,7 @@ def _manifold(pair: BodyPair, slots: ContactSlots, world: np.ndarray, quat_a, qu
         + jnp.einsum("pki,qli->pkql", torque_a, turn_a)
         + jnp.einsum("pki,qli->pkql", torque_b, turn_b)
     ).reshape(rows, rows)
-    return directions, turn_a, turn_b, (arm_a, arm_b), coupling
+    return directions, turn_a, turn_b, coupling
 
 
 def _move(pair: BodyPair, impulse: jnp.ndarray, directions, turn_a, turn_b) -> BodyPair:
@@ -92,8 +95,8 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
     points = slots.active.shape[0]
     lam = multipliers.reshape(points, MULTIPLIERS_PER_POINT)[:, :3]
     quat_a, quat_b = pair.current_quats()
-    delta, _, _ = row.anchor_points(pair, slots.local_a, slots.local_b, world[0], world[1], quat_a, quat_b)
-    directions, turn_a, turn_b, _, coupling = _manifold(pair, slots, world, quat_a, quat_b)
+    delta, arm_a, arm_b = row.anchor_points(pair, slots.local_a, slots.local_b, world[0], world[1], quat_a, quat_b)
+    directions, turn_a, turn_b, coupling = _manifold(pair, slots.normal, arm_a, arm_b)
     # errors of the rows: the gap (p_b - p_a) . n (84) and the slip in the plane (89)
     error = jnp.einsum("pki,pi->pk", directions, -delta - slots.offset)
     error = error.at[:, 0].set(-jnp.einsum("pi,pi->p", delta, slots.normal))
@@ -141,7 +144,9 @@ def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet,
     """
     pair = BodyPair.of(bodies)
     points = slots.active.shape[0]
-    directions, turn_a, turn_b, (arm_a, arm_b), coupling = _manifold(pair, slots, world, pair.quat_a, pair.quat_b)
+    _, arm_a, arm_b = row.anchor_points(pair, slots.local_a, slots.local_b, world[0], world[1], pair.quat_a,
+                                        pair.quat_b)  # fmt: skip
+    directions, turn_a, turn_b, coupling = _manifold(pair, slots.normal, arm_a, arm_b)
     speed_a = pair.vel_a + pair.dx_a + math.cross(pair.ang_vel_a + pair.dtheta_a, arm_a)
     speed_b = pair.vel_b + pair.dx_b + math.cross(pair.ang_vel_b + pair.dtheta_b, arm_b)
     bounce = jnp.where(slots.approach < -slow, slots.restitution, 0.0)

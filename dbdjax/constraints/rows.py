@@ -121,8 +121,7 @@ class Rule(NamedTuple):
     relaxation xi, regularization alpha, active (bool). inequality (bool): rigid rows only push.
     stiffness_h2 = k h^2 and damping_h = nu h for springs (both 0 for a rigid row; `spring`
     switches to the spring rule). bound: |lambda| <= bound (inf for none). speed_h: a motor's
-    target drift (target speed times h); `speed` switches to the motor rule. lower: a lower bound
-    on the accumulated lambda instead of -bound (contacts: lambda >= 0, projected Gauss-Seidel).
+    target drift (target speed times h); `speed` switches to the motor rule.
     """
 
     relaxation: jnp.ndarray
@@ -135,7 +134,6 @@ class Rule(NamedTuple):
     speed: bool = False
     speed_h: jnp.ndarray | float = 0.0
     bound: jnp.ndarray | float = jnp.inf
-    lower: jnp.ndarray | float | None = None
 
 
 def rigid(relaxation, regularization, active, inequality=False) -> Rule:
@@ -174,8 +172,7 @@ def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
         solvable = rule.active & (denominator > 0.0)
     step = -rule.relaxation * residual / jnp.where(solvable, denominator, 1.0)
     step = jnp.where(rule.inequality, jnp.maximum(step, 0.0), step)
-    lower = -rule.bound if rule.lower is None else rule.lower
-    step = jnp.clip(multiplier + step, lower, rule.bound) - multiplier
+    step = jnp.clip(multiplier + step, -rule.bound, rule.bound) - multiplier
     return jnp.where(solvable, step, 0.0)
 
 

@@ -26,13 +26,7 @@ from dbdjax import constraints, integrator
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import Family
 from dbdjax.constraints.rows import BodySet
-from dbdjax.model import Colour, Model, State
-
-
-def _with_world_row(array: jnp.ndarray, world_value: jnp.ndarray | float = 0.0) -> jnp.ndarray:
-    """Append the world as body N (static: zero inverse mass and inertia, identity pose)."""
-    row = jnp.broadcast_to(jnp.asarray(world_value, array.dtype), (1,) + array.shape[1:])
-    return jnp.concatenate([array, row], axis=0)
+from dbdjax.model import Colour, Model, State, with_world_row
 
 
 def body_table(model: Model, state: State, h: float) -> BodySet:
@@ -40,12 +34,12 @@ def body_table(model: Model, state: State, h: float) -> BodySet:
     dtype = state.pos.dtype
     zeros = jnp.zeros((model.num_bodies + 1, 3), dtype)
     return BodySet(
-        origin=_with_world_row(state.pos),
-        quat=_with_world_row(state.quat, jnp.array([1.0, 0.0, 0.0, 0.0], dtype)),
-        inv_mass=_with_world_row(1.0 / model.bodies.mass),
-        inv_inertia=_with_world_row(integrator.inverse_inertia(model, state, h)),
-        vel=_with_world_row(state.vel),
-        ang_vel=_with_world_row(state.ang_vel),
+        origin=with_world_row(state.pos),
+        quat=with_world_row(state.quat, jnp.array([1.0, 0.0, 0.0, 0.0], dtype)),
+        inv_mass=with_world_row(1.0 / model.bodies.mass),
+        inv_inertia=with_world_row(integrator.inverse_inertia(model, state, h)),
+        vel=with_world_row(state.vel),
+        ang_vel=with_world_row(state.ang_vel),
         dx=zeros,
         dtheta=zeros,
     )
