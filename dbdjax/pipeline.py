@@ -39,7 +39,7 @@ def _check_control(model: Model, control) -> None:
 
 def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -> State:
     """One substep of h seconds: predict, solve, apply."""
-    predicted = integrator.predict(model, state, h)
+    predicted = integrator.predict(model, state, h, control)
     displacement, rotation = dbd.solve(model, predicted, control, h)
     return integrator.apply(predicted, displacement, rotation, h)
 

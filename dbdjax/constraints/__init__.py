@@ -60,7 +60,9 @@ def families(model: Model, control: jnp.ndarray | None, h: float, dtype) -> list
         Family("volumes", tables[4], model.volumes, np.zeros(len(tables[4]), bool),
                lambda p, _, bodies, lam: multibody.project_volume(p, bodies, lam), 1),
     ]  # fmt: skip
-    for group, params, table in zip(structure.force_groups, model.forces, tables[5:], strict=True):
+    for group, params, table in zip(
+        structure.force_groups, model.forces, tables[5 : 5 + len(structure.force_groups)], strict=True
+    ):
         k = table.shape[1]
         project = functools.partial(_project_force_flat, group.function, h=h, k=k)
         result.append(Family(group.name, table, params, np.zeros(len(table), bool), project, 6 * k))

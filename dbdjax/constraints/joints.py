@@ -13,6 +13,7 @@ Row by kind:
   slider point off the axis (SI 2.3.1), rotation lock (SI (53)), travel limits (SI 2.3.5),
          motor (SI 2.3.6)
   fixed  point, rotation lock (SI 2.5)
+  planar the point row along the normal only, axle alignment as a hinge's (MJCF slide-slide-hinge)
 Drives and motors go first so that the hard rows, and the point row last of all, have the last word.
 """
 
@@ -26,7 +27,7 @@ import numpy as np
 from dbdjax import math
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
-from dbdjax.model import BALL, FIXED, HINGE, SLIDER, Joints, Structure
+from dbdjax.model import BALL, FIXED, HINGE, PLANAR, SLIDER, Joints, Structure
 
 # Multipliers of one joint, in the order of `project`'s rows (a ball drive owns three).
 DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 5, 6, 7
@@ -49,6 +50,7 @@ class JointFlags(NamedTuple):
     ball_drive: np.ndarray
     angular_motor: np.ndarray  # hinge
     linear_motor: np.ndarray  # slider
+    planar: np.ndarray  # planar joints (axle row as a hinge, point row along the normal)
 
 
 class Targets(NamedTuple):
@@ -63,6 +65,8 @@ def flags(structure: Structure) -> JointFlags:
     kind = structure.joint_kind.array
     limits = structure.joint_has_limits.array
     drive = structure.joint_drive_control.array[:, 0] < structure.num_controls
+    if structure.joint_passive_drive.array.size:  # spring-dampers toward the build pose, no control
+        drive = drive | structure.joint_passive_drive.array
     motor = structure.joint_motor_control.array < structure.num_controls
     world = structure.num_bodies
     return JointFlags(
@@ -78,6 +82,7 @@ def flags(structure: Structure) -> JointFlags:
         ball_drive=drive & (kind == BALL),
         angular_motor=motor & (kind == HINGE),
         linear_motor=motor & (kind == SLIDER),
+        planar=kind == PLANAR,
     )
 
 
@@ -98,7 +103,7 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
     row alone."""
     f = flags(structure)
     used = {name for name, values in f._asdict().items() if values.any()}
-    if (f.hinge | f.rotation_locked).any():
+    if (f.hinge | f.rotation_locked | f.planar).any():
         used.add("rotation_lock")
     return frozenset(used | {"point"})
 
@@ -207,10 +212,11 @@ def project(
         axle_angle, axle_axis = math.angle_between(axis_a, axis_b)
         relative = _relative_rotation(joint, quat_a, quat_b)
         lock_axis, lock_angle = math.safe_normalize(math.quat_rotate(quat_a, math.quat_log(relative)))
-        error = jnp.where(flag.hinge, axle_angle, lock_angle)
-        direction = jnp.where(flag.hinge[..., None], -axle_axis, -lock_axis)  # dc/dtheta_a
+        axle = flag.hinge | flag.planar
+        error = jnp.where(axle, axle_angle, lock_angle)
+        direction = jnp.where(axle[..., None], -axle_axis, -lock_axis)  # dc/dtheta_a
         pair, lam[ROTATION_LOCK] = row.angular_row(
-            pair, direction, error, lam[ROTATION_LOCK], hard(flag.hinge | flag.rotation_locked)
+            pair, direction, error, lam[ROTATION_LOCK], hard(axle | flag.rotation_locked)
         )
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
@@ -249,6 +255,8 @@ def project(
     delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
     slide_axis = math.quat_rotate(quat_a, joint.local_axis_a)
     along = jnp.where(flag.slider, math.dot(delta, slide_axis), 0.0)[..., None] * slide_axis
+    # A planar joint frees the in-plane part instead: only the offset along its normal is removed.
+    along = jnp.where(flag.planar[..., None], delta - math.dot(delta, slide_axis)[..., None] * slide_axis, along)
     direction, gap = math.safe_normalize(delta - along)
     pair, lam[POINT] = row.positional_row(pair, direction, arm_a - along, arm_b, gap, lam[POINT], hard(True))
     dx, dtheta = pair.displacements()

@@ -86,19 +86,27 @@ def solve(model: Model, predicted: State, control: jnp.ndarray | None, h: float)
         multipliers = zero_multipliers(groups)
     else:
         colours = [
-            [constraints.gather(f, nodes.array) for f, nodes in zip(all_families, colour.nodes, strict=True)
-             if len(nodes.array)]
+            [constraints.gather(f, nodes.array)
+             for f, nodes in zip(all_families, colour.nodes[: len(all_families)], strict=True) if len(nodes.array)]
+            for colour in structure.colours
+        ]  # fmt: skip
+        # Families the colouring knows but no projection exists for yet (the contact groups until
+        # the contact solver lands): their rows in the body_slot gather keep the bodies' current moves.
+        tables = structure.family_bodies()
+        pending = [
+            np.concatenate([tables[k][nodes.array].reshape(-1) for k, nodes in enumerate(colour.nodes)
+                            if k >= len(all_families)] + [np.zeros(0, np.int64)])
             for colour in structure.colours
         ]  # fmt: skip
 
         def iteration(carry, _):
             dx, dtheta, multipliers = carry
             updated = []
-            for groups, colour, lams in zip(colours, structure.colours, multipliers, strict=True):
+            for groups, colour, lams, kept in zip(colours, structure.colours, multipliers, pending, strict=True):
                 moved = [project(f, dx, dtheta, lam) for f, lam in zip(groups, lams, strict=True)]
                 slot = colour.body_slot.array
-                dx = jnp.concatenate([m[0] for m in moved] + [dx])[slot]
-                dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta])[slot]
+                dx = jnp.concatenate([m[0] for m in moved] + [dx[kept], dx])[slot]
+                dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta[kept], dtheta])[slot]
                 updated.append([m[2] for m in moved])
             return (dx, dtheta, updated), None
 
