@@ -297,8 +297,8 @@ def _add_body_joints(mujoco, m, d, builder: ModelBuilder, i: int, body_index, bo
             cone = None
             if m.jnt_limited[j] and m.jnt_range[j][1] < math.pi:
                 cone = float(m.jnt_range[j][1])
-            ours = builder.add_ball_joint(parent, child, anchor, cone_limit=cone,
-                                          twist_limits=None if cone is None else (-cone, cone), name=names[0])  # fmt: skip
+            twist = None if cone is None else (-cone, cone)
+            ours = builder.add_ball_joint(parent, child, anchor, cone_limit=cone, twist_limits=twist, name=names[0])
             joint_of[j] = (ours, "ball", None)
             _spring(m, builder, ours, [j], [m.jnt_dofadr[j] + k for k in range(3)], positioned)
         else:  # pragma: no cover - MuJoCo has no other joint type
@@ -368,8 +368,10 @@ def _add_geom(mujoco, m, d, builder: ModelBuilder, g: int, body_index, body_quat
         if contype == 0 and conaffinity == 0:
             return  # visual only: its mass is already in the body's inertia
         type_name = G(kind).name.removeprefix("mjGEOM_").lower()
-        raise ValueError(f"load_mjcf: MJCF {label} on {_label(m, 'body', body)}: geom type {type_name!r} is not "
-                         "supported (sphere, capsule, box, plane; or make it visual with contype=conaffinity=0)")  # fmt: skip
+        raise ValueError(
+            f"load_mjcf: MJCF {label} on {_label(m, 'body', body)}: geom type {type_name!r} is not supported "
+            "(sphere, capsule, box, plane; or make it visual with contype=conaffinity=0)"
+        )
     material = {
         "friction": 0.0 if m.geom_condim[g] == 1 else float(m.geom_friction[g, 0]),
         "contype": contype,

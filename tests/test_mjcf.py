@@ -74,7 +74,7 @@ LINK = '<geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/>'
 @pytest.mark.parametrize(
     ("xml", "names"),
     [
-        (_wrap(f'<body name="can"><freejoint/><geom name="tin" type="cylinder" size="0.1 0.2"/></body>'),
+        (_wrap('<body name="can"><freejoint/><geom name="tin" type="cylinder" size="0.1 0.2"/></body>'),
          ["geom 'tin'", "cylinder"]),
         (_wrap(f'<body name="arm"><joint name="h" axis="0 1 0"/><joint name="s" type="slide"/>{LINK}</body>'),
          ["body 'arm'", "'h'", "'s'"]),
@@ -119,10 +119,12 @@ def test_missing_mujoco_raises_an_import_error_that_says_how_to_install(monkeypa
 
 # ----------------------------------------------------------------------------- geometry
 def test_geoms_keep_their_world_placement_in_the_inertial_frame():
-    xml = _wrap('<geom name="floor" type="plane" size="5 5 0.1" pos="0 0 0.3" zaxis="0 0.6 0.8"/>'
-                '<body pos="0.2 0.1 1" euler="10 20 30"><freejoint/>'
-                '<geom name="rod" type="capsule" fromto="0 0 0 0.3 0.1 -0.4" size="0.05"/>'
-                '<geom name="block" type="box" pos="0.1 -0.2 0" euler="0 0 40" size="0.1 0.05 0.02"/></body>')
+    xml = _wrap(
+        '<geom name="floor" type="plane" size="5 5 0.1" pos="0 0 0.3" zaxis="0 0.6 0.8"/>'
+        '<body pos="0.2 0.1 1" euler="10 20 30"><freejoint/>'
+        '<geom name="rod" type="capsule" fromto="0 0 0 0.3 0.1 -0.4" size="0.05"/>'
+        '<geom name="block" type="box" pos="0.1 -0.2 0" euler="0 0 40" size="0.1 0.05 0.02"/></body>'
+    )
     model = dbd.load_mjcf(xml)
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)
@@ -148,31 +150,58 @@ def test_geoms_keep_their_world_placement_in_the_inertial_frame():
 # time discretisation of the two integrators (against MuJoCo's RK4 it is the same size), not a
 # modelling difference, which would not shrink with dt. The bounds are the measured gaps plus 20 %.
 SCENES = {
-    "pendulum": ("""<body pos="0 0 2" euler="0 50 0"><joint name="h" axis="0 1 0"/>
-        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body>""", "", [], 1.2e-2),
-    "chain": ("""<body pos="0 0 2" euler="0 40 0"><joint name="h1" axis="0 1 0"/>
+    "pendulum": (
+        """<body pos="0 0 2" euler="0 50 0"><joint name="h" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body>""",
+        "",
+        [],
+        1.2e-2,
+    ),
+    "chain": (
+        """<body pos="0 0 2" euler="0 40 0"><joint name="h1" axis="0 1 0"/>
         <geom type="capsule" fromto="0 0 0 0 0 -0.4" size="0.04"/>
         <body pos="0 0 -0.4" euler="30 0 0"><joint name="h2" axis="1 0 0"/>
         <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.04"/>
         <body pos="0 0 -0.3" euler="0 -30 20"><joint name="h3" axis="0 1 1"/>
-        <geom type="box" pos="0.05 0 -0.15" size="0.03 0.05 0.15"/></body></body></body>""", "", [], 1.8e-1),
-    "cartpole": ("""<body pos="0 0 1" euler="0 20 0"><joint name="s" type="slide" axis="1 0 0"/>
-        <geom type="box" size="0.2 0.1 0.05"/>
-        <body euler="0 40 0"><joint name="p" axis="0 1 0"/>
-        <geom type="capsule" fromto="0 0 0 0 0 0.6" size="0.03"/></body></body>""", "", [], 1.13e-1),
-    "ball": ("""<body pos="0 0 2" euler="35 25 10"><joint name="b" type="ball"/>
-        <geom type="box" pos="0.02 0.03 -0.3" size="0.05 0.1 0.25"/></body>""", "", [], 1.26e-2),
-    # joint stiffness + damping (the drive row) and a motor (add_torque) on a hinge
-    "driven": ("""<body pos="0 0 2" euler="0 50 0"><joint name="h" axis="0 1 0" stiffness="3" damping="0.2"/>
-        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body>""",
-               '<actuator><motor joint="h" gear="2" ctrlrange="-1 1"/></actuator>', [0.5], 1.0e-2),
-    # slide damping (a passive force), a motor on a slide, a position servo (kp, kv) on a hinge
-    "servo": ("""<body pos="0 0 1" euler="0 20 0"><joint name="s" type="slide" axis="1 0 0" damping="0.5"/>
+        <geom type="box" pos="0.05 0 -0.15" size="0.03 0.05 0.15"/></body></body></body>""",
+        "",
+        [],
+        1.8e-1,
+    ),
+    "cartpole": (
+        """<body pos="0 0 1" euler="0 20 0"><joint name="s" type="slide" axis="1 0 0"/>
         <geom type="box" size="0.2 0.1 0.05"/>
         <body euler="0 40 0"><joint name="p" axis="0 1 0"/>
         <geom type="capsule" fromto="0 0 0 0 0 0.6" size="0.03"/></body></body>""",
-              '<actuator><motor joint="s" gear="3"/><position joint="p" kp="10" kv="0.5"/></actuator>',
-              [1.0, 0.3], 7.8e-3),
+        "",
+        [],
+        1.13e-1,
+    ),
+    "ball": (
+        """<body pos="0 0 2" euler="35 25 10"><joint name="b" type="ball"/>
+        <geom type="box" pos="0.02 0.03 -0.3" size="0.05 0.1 0.25"/></body>""",
+        "",
+        [],
+        1.26e-2,
+    ),
+    # joint stiffness + damping (the drive row) and a motor (add_torque) on a hinge
+    "driven": (
+        """<body pos="0 0 2" euler="0 50 0"><joint name="h" axis="0 1 0" stiffness="3" damping="0.2"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/></body>""",
+        '<actuator><motor joint="h" gear="2" ctrlrange="-1 1"/></actuator>',
+        [0.5],
+        1.0e-2,
+    ),
+    # slide damping (a passive force), a motor on a slide, a position servo (kp, kv) on a hinge
+    "servo": (
+        """<body pos="0 0 1" euler="0 20 0"><joint name="s" type="slide" axis="1 0 0" damping="0.5"/>
+        <geom type="box" size="0.2 0.1 0.05"/>
+        <body euler="0 40 0"><joint name="p" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 0.6" size="0.03"/></body></body>""",
+        '<actuator><motor joint="s" gear="3"/><position joint="p" kp="10" kv="0.5"/></actuator>',
+        [1.0, 0.3],
+        7.8e-3,
+    ),
 }
 
 
