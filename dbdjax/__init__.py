@@ -10,8 +10,21 @@ state = dbd.step(model, dbd.init(model))
 
 from dbdjax import diagnostics, math
 from dbdjax.builder import ModelBuilder
+from dbdjax.mjcf import load_mjcf
 from dbdjax.model import WORLD, Model, State
 from dbdjax.pipeline import init, is_finite, rollout, step
 
-__all__ = ["WORLD", "Model", "diagnostics", "ModelBuilder", "State", "init", "is_finite", "math", "rollout", "step"]
+__all__ = [
+    "WORLD",
+    "Model",
+    "diagnostics",
+    "ModelBuilder",
+    "State",
+    "init",
+    "is_finite",
+    "load_mjcf",
+    "math",
+    "rollout",
+    "step",
+]
 __version__ = "0.1.0"

@@ -23,6 +23,7 @@ from dbdjax.model import (
     FIXED,
     HINGE,
     JOINT_KIND_NAMES,
+    PLANAR,
     SLIDER,
     WORLD,
     Bodies,
@@ -37,6 +38,7 @@ from dbdjax.model import (
     Springs,
     StaticArray,
     Structure,
+    Torques,
     Volumes,
 )
 
@@ -120,6 +122,18 @@ class _Joint:
     drive_control: tuple[int, ...] = ()  # control entries of the drive target
     motor_max_force: float = 0.0
     motor_control: int | None = None
+    passive_drive: bool = False  # add_joint_spring: a drive toward the build pose, no control
+
+
+@dataclasses.dataclass
+class _Torque:
+    """A torque (force) actuator on a joint: gear * control about (along) a world axis at build time."""
+
+    joint: int
+    gear: float
+    axis: np.ndarray
+    linear: bool
+    control: int
 
 
 @dataclasses.dataclass
@@ -182,6 +196,8 @@ class ModelBuilder:
         self._excluded: set[frozenset[int]] = set()  # body pairs that never touch
         self._allowed: set[frozenset[int]] = set()  # jointed body pairs that may touch anyway
         self._control_names: list[str] = []
+        self._control_ranges: list[tuple[float, float]] = []
+        self._torques: list[_Torque] = []
 
     # ----------------------------------------------------------------------------- bodies
     def add_body(
@@ -426,6 +442,29 @@ class ModelBuilder:
             False, math.pi, False, relaxation, regularization,
         )  # fmt: skip
 
+    def add_planar_joint(
+        self,
+        body_a: int,
+        body_b: int,
+        anchor: Sequence[float],
+        normal: Sequence[float],
+        relaxation: float = 1.0,
+        regularization: float = 0.0,
+        name: str | None = None,
+    ) -> int:
+        """Planar joint: b translates in the plane through world `anchor` normal to `normal` and
+        rotates about `normal` only (3 degrees of freedom; MJCF's slide-slide-hinge root of a 2-D
+        walker). The point row keeps the anchor's offset along the normal zero, the axle row (as a
+        hinge's) keeps the normal of both bodies aligned."""
+        label = self._joint_label("planar", name)
+        anchor = _vector(anchor, 3, f"{label}: anchor")
+        normal = _unit(normal, f"{label}: normal")
+        self._check_bodies(label, body_a, body_b)
+        return self._add_joint(
+            label, name, PLANAR, body_a, body_b, anchor, normal, 0.0, 0.0,
+            False, math.pi, False, relaxation, regularization,
+        )  # fmt: skip
+
     def _joint_label(self, kind: str, name: str | None) -> str:
         index = len(self._joints)
         return f"{kind} joint {index}" + (f" ({name!r})" if name else "")
@@ -502,7 +541,7 @@ class ModelBuilder:
         if record.kind not in (HINGE, BALL):
             raise ValueError(f"add_drive: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; drives act on hinge "
                              "and ball joints (use add_motor for a slider)")  # fmt: skip
-        if record.drive_control:
+        if record.drive_control or record.passive_drive:
             raise ValueError(f"add_drive: {label} already has a drive")
         record.drive_stiffness = self._non_negative(stiffness, f"add_drive on {label}: stiffness")
         record.drive_damping = self._non_negative(damping, f"add_drive on {label}: damping")
@@ -514,6 +553,20 @@ class ModelBuilder:
         controls = self._new_controls(f"drive on {name or record.name}", size)
         record.drive_control = tuple(range(controls.start, controls.stop))
         return controls
+
+    def add_joint_spring(self, joint: int, stiffness: float, damping: float = 0.0) -> None:
+        """A passive spring-damper on a hinge or ball joint toward its build pose (MJCF joint
+        stiffness and damping): the drive of DBD 9 with a fixed zero target and no control entry.
+        stiffness: N m/rad, damping: N m s/rad (ball: the same about every axis)."""
+        label, record = self._actuated_joint("add_joint_spring", joint)
+        if record.kind not in (HINGE, BALL):
+            raise ValueError(f"add_joint_spring: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; joint springs "
+                             "act on hinge and ball joints")  # fmt: skip
+        if record.drive_control or record.passive_drive:
+            raise ValueError(f"add_joint_spring: {label} already has a drive")
+        record.drive_stiffness = self._non_negative(stiffness, f"add_joint_spring on {label}: stiffness")
+        record.drive_damping = self._non_negative(damping, f"add_joint_spring on {label}: damping")
+        record.passive_drive = True
 
     def add_motor(self, joint: int, max_force: float, name: str | None = None) -> slice:
         """A motor driving a joint at a control target speed with a force limit (SI 2.3.6, 2.4.6).
@@ -534,6 +587,50 @@ class ModelBuilder:
         record.motor_control = controls.start
         return controls
 
+    def add_torque(
+        self, joint: int, gear: float = 1.0, axis: Sequence[float] | None = None, name: str | None = None
+    ) -> slice:
+        """A torque actuator (MJCF <motor>): gear * control as an external torque on the joint.
+
+        Hinge: torque gear * u (N m) about the axle on b and the opposite on a. Slider: force
+        gear * u (N) along the axis on b, and the opposite on a at the same point. Ball: torque
+        about `axis` (world, at build time; required), which turns with both bodies (the
+        normalised sum of the axis carried by a and by b). The torque is held constant over each
+        substep and applied in the prediction (as MuJoCo's actuator force, semi-implicit Euler).
+        Returns the actuator's slice (1 entry) of the control vector.
+        """
+        label, record = self._actuated_joint("add_torque", joint)
+        if record.kind not in (HINGE, SLIDER, BALL):
+            raise ValueError(f"add_torque: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; torque actuators act "
+                             "on hinge, slider and ball joints")  # fmt: skip
+        gear = _scalar(gear, f"add_torque on {label}: gear")
+        if record.kind == BALL:
+            if axis is None:
+                raise ValueError(f"add_torque: {label} is a ball joint; give the torque axis")
+            direction = _unit(axis, f"add_torque on {label}: axis")
+        else:
+            if axis is not None:
+                raise ValueError(f"add_torque: {label} acts along its own axis; leave axis out")
+            direction = record.axis
+        controls = self._new_controls(f"torque on {name or record.name}", 1)
+        self._torques.append(_Torque(int(joint), gear, direction, record.kind == SLIDER, controls.start))
+        return controls
+
+    def set_control_range(self, controls: slice | int, lower: float, upper: float) -> None:
+        """Record the range [lower, upper] the control entries `controls` are meant for (MJCF's
+        ctrlrange; `Model.control_range`). Informational: `step` does not clip."""
+        entries = range(len(self._control_names))[
+            controls if isinstance(controls, slice) else slice(controls, controls + 1)
+        ]
+        if not len(entries):
+            raise ValueError(f"set_control_range: {controls!r} names no control entry "
+                             f"(there are {len(self._control_names)})")  # fmt: skip
+        lower, upper = float(lower), float(upper)
+        if math.isnan(lower) or math.isnan(upper) or lower > upper:
+            raise ValueError(f"set_control_range: need lower <= upper, got ({lower}, {upper})")
+        for entry in entries:
+            self._control_ranges[entry] = (lower, upper)
+
     def _actuated_joint(self, what: str, joint) -> tuple[str, _Joint]:
         if not isinstance(joint, (int, np.integer)) or isinstance(joint, bool) or not 0 <= joint < len(self._joints):
             raise ValueError(f"{what}: joint = {joint!r} is not a joint index (there are {len(self._joints)} joints)")
@@ -543,6 +640,7 @@ class ModelBuilder:
     def _new_controls(self, name: str, size: int) -> slice:
         start = len(self._control_names)
         self._control_names.extend([name] if size == 1 else [f"{name} [{axis}]" for axis in "xyz"[:size]])
+        self._control_ranges.extend([(-math.inf, math.inf)] * size)
         return slice(start, start + size)
 
     @staticmethod
@@ -925,6 +1023,13 @@ class ModelBuilder:
             body_names=tuple(b.name for b in body),
             joint_names=tuple(j.name for j in js),
             control_names=tuple(self._control_names),
+            torque_bodies=body_table(
+                [(solver_index(js[t.joint].body_a), solver_index(js[t.joint].body_b)) for t in self._torques], 2
+            ),
+            torque_control=StaticArray(np.asarray([t.control for t in self._torques], dtype=np.int32)),
+            torque_linear=StaticArray(np.asarray([t.linear for t in self._torques], dtype=bool)),
+            control_range=StaticArray(np.reshape(np.asarray(self._control_ranges, dtype=np.float64), (-1, 2))),
+            joint_passive_drive=StaticArray(np.asarray([j.passive_drive for j in js], dtype=bool)),
         )
         structure = dataclasses.replace(
             structure,
@@ -938,6 +1043,12 @@ class ModelBuilder:
             local_quat=table([quat for _, quat in shape_poses], 4),
             **{f: column(sh, f) for f in ("friction", "dynamic_friction", "restitution")},
         )
+        ts = self._torques
+        torques = Torques(
+            gear=column(ts, "gear"),
+            local_axis_a=table([host_math.rotate(frame(js[t.joint].body_a)[1], t.axis, inverse=True) for t in ts], 3),
+            local_axis_b=table([host_math.rotate(frame(js[t.joint].body_b)[1], t.axis, inverse=True) for t in ts], 3),
+        )
         return Model(bodies=bodies, joints=joints, springs=springs, distances=distances, ropes=ropes,
                      volumes=volumes, forces=force_params, shapes=shape_table, gravity=jnp.asarray(self.gravity),
-                     structure=structure, options=options)  # fmt: skip
+                     structure=structure, options=options, torques=torques)  # fmt: skip

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from dbdjax import math
 from dbdjax.constraints import rows
 from dbdjax.constraints.rows import BodyPair
-from dbdjax.model import SLIDER, Model, State
+from dbdjax.model import PLANAR, SLIDER, Model, State
 
 
 def _world_inertia(model: Model, state: State) -> jnp.ndarray:
@@ -39,7 +39,9 @@ def joint_gaps(model: Model, state: State) -> jnp.ndarray:
     )  # fmt: skip
     axis = math.quat_rotate(quat[..., a, :], model.joints.local_axis_a)
     slider = jnp.asarray(structure.joint_kind.array == SLIDER)
+    planar = jnp.asarray(structure.joint_kind.array == PLANAR)
     delta = delta - jnp.where(slider[:, None], math.dot(delta, axis)[..., None] * axis, 0.0)
+    delta = jnp.where(planar[:, None], math.dot(delta, axis)[..., None] * axis, delta)
     return math.safe_norm(delta)
 
 

@@ -26,9 +26,10 @@ def with_world_row(array: jnp.ndarray, world_value: jnp.ndarray | float = 0.0) -
     return jnp.concatenate([array, row], axis=0)
 
 
-# Joint kinds (`Structure.joint_kind`).
-BALL, HINGE, SLIDER, FIXED = 0, 1, 2, 3
-JOINT_KIND_NAMES = ("ball", "hinge", "slider", "fixed")
+# Joint kinds (`Structure.joint_kind`). PLANAR: motion in the plane normal to the axis plus rotation
+# about it (MJCF's slide-slide-hinge roots of hopper, walker2d, half_cheetah).
+BALL, HINGE, SLIDER, FIXED, PLANAR = 0, 1, 2, 3, 4
+JOINT_KIND_NAMES = ("ball", "hinge", "slider", "fixed", "planar")
 
 
 def _pytree(cls, meta: tuple[str, ...] = ()):
@@ -133,6 +134,26 @@ class Joints:
 
 
 Joints = _pytree(Joints)
+
+
+@dataclasses.dataclass(frozen=True)
+class Torques:
+    """Torque (force) actuators on joints, T rows: MJCF's <motor>, `ModelBuilder.add_torque`.
+
+    Each applies gear * control as an external torque about its axis (hinge, ball: +tau on b,
+    -tau on a) or force along it (slider: +F on b at its centre of mass, -F on a at that same
+    point), held over the substep in `integrator.predict`.
+    gear: (T,) N m (or N) per unit of control. local_axis_a/b: (T, 3) the unit axis in the frames
+    of the joint's two bodies (world coordinates for the world); angular actuators act about the
+    normalised sum of the two (equal for a hinge), linear ones along a's.
+    """
+
+    gear: jnp.ndarray
+    local_axis_a: jnp.ndarray
+    local_axis_b: jnp.ndarray
+
+
+Torques = _pytree(Torques)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -312,6 +333,17 @@ class Structure:
     body_names: tuple[str, ...]
     joint_names: tuple[str, ...]
     control_names: tuple[str, ...]
+    # Torque actuators (`Torques`), T rows: their two bodies (T, 2) int (N = world), the control
+    # entry of each (T,) int, and (T,) bool True for a force along a slider.
+    torque_bodies: StaticArray = StaticArray(np.zeros((0, 2), np.int32))
+    torque_control: StaticArray = StaticArray(np.zeros((0,), np.int32))
+    torque_linear: StaticArray = StaticArray(np.zeros((0,), bool))
+    # (num_controls, 2) the range each control entry is meant to stay in (MJCF ctrlrange; -inf, inf
+    # for drives and motors added directly). Informational: `step` does not clip.
+    control_range: StaticArray = StaticArray(np.zeros((0, 2)))
+    # (J,) bool: the joint's drive is a passive spring-damper toward the build pose with no control
+    # entry (`ModelBuilder.add_joint_spring`, MJCF joint stiffness/damping). Empty: none.
+    joint_passive_drive: StaticArray = StaticArray(np.zeros((0,), bool))
 
     @property
     def num_colours(self) -> int:
@@ -359,6 +391,7 @@ class Model:
     gravity: jnp.ndarray  # (3,) m/s^2
     structure: Structure
     options: Options
+    torques: Torques | None = None  # torque actuators (None: none)
 
     @property
     def num_bodies(self) -> int:
@@ -375,6 +408,11 @@ class Model:
     @property
     def dt(self) -> float:
         return self.options.dt
+
+    @property
+    def control_range(self) -> np.ndarray:
+        """(num_controls, 2) lower and upper bound of each control entry (informational: not clipped)."""
+        return self.structure.control_range.array
 
 
 Model = _pytree(Model, meta=("structure", "options"))

@@ -41,7 +41,7 @@ def _check_control(model: Model, control) -> None:
 
 def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -> State:
     """One substep of h seconds: predict, detect contacts, solve, apply, restitution."""
-    predicted = integrator.predict(model, state, h)
+    predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)
     displacement, rotation, normal_multipliers = dbd.solve(model, predicted, control, slots, h)
     state = integrator.apply(predicted, displacement, rotation, h)

@@ -13,6 +13,7 @@ Row by kind:
   slider point off the axis (SI 2.3.1), rotation lock (SI (53)), travel limits (SI 2.3.5),
          motor (SI 2.3.6)
   fixed  point, rotation lock (SI 2.5)
+  planar the point row along the normal only, axle alignment as a hinge's (MJCF slide-slide-hinge)
 Drives and motors go first so that the hard rows, and the point block last of all, have the last word.
 """
 
@@ -26,7 +27,7 @@ import numpy as np
 from dbdjax import math
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
-from dbdjax.model import BALL, FIXED, HINGE, SLIDER, Joints, Structure
+from dbdjax.model import BALL, FIXED, HINGE, PLANAR, SLIDER, Joints, Structure
 
 # Multipliers of one joint, in the order of `project`'s rows. The ball drive's torque and the
 # point block's impulse are 3-vectors: they own slots [DRIVE, DRIVE + 3) and [POINT, POINT + 3).
@@ -50,6 +51,7 @@ class JointFlags(NamedTuple):
     ball_drive: np.ndarray
     angular_motor: np.ndarray  # hinge
     linear_motor: np.ndarray  # slider
+    planar: np.ndarray  # planar joints (axle row as a hinge, point row along the normal)
 
 
 class Targets(NamedTuple):
@@ -64,6 +66,8 @@ def flags(structure: Structure) -> JointFlags:
     kind = structure.joint_kind.array
     limits = structure.joint_has_limits.array
     drive = structure.joint_drive_control.array[:, 0] < structure.num_controls
+    if structure.joint_passive_drive.array.size:  # spring-dampers toward the build pose, no control
+        drive = drive | structure.joint_passive_drive.array
     motor = structure.joint_motor_control.array < structure.num_controls
     world = structure.num_bodies
     return JointFlags(
@@ -79,6 +83,7 @@ def flags(structure: Structure) -> JointFlags:
         ball_drive=drive & (kind == BALL),
         angular_motor=motor & (kind == HINGE),
         linear_motor=motor & (kind == SLIDER),
+        planar=kind == PLANAR,
     )
 
 
@@ -99,7 +104,7 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
     block alone."""
     f = flags(structure)
     used = {name for name, values in f._asdict().items() if values.any()}
-    if (f.hinge | f.rotation_locked).any():
+    if (f.hinge | f.rotation_locked | f.planar).any():
         used.add("rotation_lock")
     return frozenset(used | {"point"})
 
@@ -208,10 +213,11 @@ def project(
         axle_angle, axle_axis = math.angle_between(axis_a, axis_b)
         relative = _relative_rotation(joint, quat_a, quat_b)
         lock_axis, lock_angle = math.safe_normalize(math.quat_rotate(quat_a, math.quat_log(relative)))
-        error = jnp.where(flag.hinge, axle_angle, lock_angle)
-        direction = jnp.where(flag.hinge[..., None], -axle_axis, -lock_axis)  # dc/dtheta_a
+        axle = flag.hinge | flag.planar
+        error = jnp.where(axle, axle_angle, lock_angle)
+        direction = jnp.where(axle[..., None], -axle_axis, -lock_axis)  # dc/dtheta_a
         pair, lam[ROTATION_LOCK] = row.angular_row(
-            pair, direction, error, lam[ROTATION_LOCK], hard(flag.hinge | flag.rotation_locked)
+            pair, direction, error, lam[ROTATION_LOCK], hard(axle | flag.rotation_locked)
         )
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
@@ -249,15 +255,19 @@ def project(
     # the joint holds (derivatives there disagree with finite differences), and its one row along
     # the gap leaves what lies across it. The block conserves linear momentum exactly and angular
     # momentum up to gap x impulse (63), which vanishes as the gap closes.
-    # A slider only removes the part across its axis (SI (51)), acting level with p_b on a.
+    # A slider only removes the part across its axis (SI (51)), a planar joint only the part along
+    # its normal; both act level with p_b on a.
     quat_a, quat_b = pair.current_quats()
     delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
-    slide_axis = None
-    if "slider" in rows:
-        slide_axis = jnp.where(flag.slider, math.quat_rotate(quat_a, joint.local_axis_a), 0.0)
-        arm_a = arm_a - math.dot(delta, slide_axis)[..., None] * slide_axis
+    constrained = None
+    if "slider" in rows or "planar" in rows:
+        axis = math.quat_rotate(quat_a, joint.local_axis_a)
+        along_axis = axis[:, None] * axis[None, :]
+        eye = jnp.eye(3, dtype=delta.dtype)
+        constrained = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
+        arm_a = arm_a - math.matvec(eye - constrained, delta)
     pair, point = row.point_block(
-        pair, arm_a, arm_b, delta, jnp.stack(lam[POINT : POINT + 3]), hard(True), free_axis=slide_axis
+        pair, arm_a, arm_b, delta, jnp.stack(lam[POINT : POINT + 3]), hard(True), constrained=constrained
     )
     lam[POINT : POINT + 3] = list(point)
     dx, dtheta = pair.displacements()

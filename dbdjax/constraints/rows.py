@@ -289,16 +289,17 @@ def point_block(
     error: jnp.ndarray,
     multiplier: jnp.ndarray,
     rule: Rule,
-    free_axis: jnp.ndarray | None = None,
+    constrained: jnp.ndarray | None = None,
 ) -> tuple[BodyPair, jnp.ndarray]:
     """Project the point constraint c = `error` (3,) m = p_a - p_b as one block of three rows,
     DBD (64)-(66), by the rigid rule in matrix form (see the module docstring).
 
     The impulse lambda (3,) kg m acts at arm_a from a's centre and -lambda at arm_b from b's.
     multiplier: (3,) lambda so far this substep. rule: a `rigid` rule (relaxation xi,
-    regularisation alpha, active). free_axis: (3,) unit axis the block leaves free (a slider's,
-    SI (51)) or zero or None: the rows then span the plane across it, the error is taken in that
-    plane and so is the step. Returns the moved pair and the new multiplier.
+    regularisation alpha, active). constrained: (3, 3) orthogonal projector P onto the directions
+    the block removes, or None for all three: the plane across a slider's axis (SI (51)), the normal
+    line of a planar joint. The error is taken in range(P) and so is the step. Returns the moved
+    pair and the new multiplier.
     """
     if rule.spring or rule.speed:
         raise ValueError("point_block takes the rigid rule only")
@@ -309,14 +310,12 @@ def point_block(
         + rule.regularization * eye
     )  # (57), (66), regularised as in (47)
     residual = error + rule.regularization * multiplier
-    if free_axis is not None:
-        # Restricted to the plane across u: P K P + u u^T with P = 1 - u u^T. It maps the plane to
-        # itself and u to u, so with a residual in the plane the step stays in the plane too.
-        u = free_axis
-        k_u = math.matvec(inverse_mass, u)
-        outer = lambda x, y: x[..., :, None] * y[..., None, :]  # noqa: E731
-        inverse_mass = inverse_mass - outer(u, k_u) - outer(k_u, u) + (math.dot(u, k_u) + 1.0) * outer(u, u)
-        residual = residual - math.dot(residual, u) * u
+    if constrained is not None:
+        # Restricted to range(P): P K P + (1 - P) maps range(P) to itself and its complement to
+        # itself, so with a residual in range(P) the step stays there too.
+        projector = constrained
+        inverse_mass = projector @ inverse_mass @ projector + (eye - projector)
+        residual = math.matvec(projector, residual)
     determinant = math.dot(inverse_mass[0], math.cross(inverse_mass[1], inverse_mass[2]))
     solvable = rule.active & (determinant > 0.0)  # K is positive definite unless both sides are static
     solve = math.inverse3(jnp.where(solvable, inverse_mass, eye))
