@@ -8,7 +8,7 @@ model = b.finalize(dt=1 / 60)
 state = dbd.step(model, dbd.init(model))
 """
 
-from dbdjax import diagnostics, math
+from dbdjax import diagnostics, math, sharding
 from dbdjax.builder import ModelBuilder
 from dbdjax.mjcf import load_mjcf
 from dbdjax.model import WORLD, Model, State
@@ -25,6 +25,7 @@ __all__ = [
     "load_mjcf",
     "math",
     "rollout",
+    "sharding",
     "step",
 ]
 __version__ = "0.1.0"
