@@ -43,6 +43,7 @@ from dbdjax.model import (
 )
 
 SOLVERS = ("dbd",)
+INITIAL_GUESSES = ("tree", "zero")
 PLANNED_SOLVERS = ("impulse",)
 
 
@@ -798,6 +799,7 @@ class ModelBuilder:
         contact_margin: float = 0.01,
         contact_compliance: float = 0.0,
         restitution_iterations: int = 2,
+        initial_guess: str = "zero",
     ) -> Model:
         """Freeze the description into a `Model` for `init`, `step` and `rollout`.
 
@@ -810,6 +812,9 @@ class ModelBuilder:
         only push once they touch). contact_compliance: m/N, 0 for rigid contacts; a small value
         (1e-6 .. 1e-4) makes contact a stiff spring, whose gradients are smoother for trajectory
         optimisation. restitution_iterations: sweeps of the velocity pass (restitution).
+        initial_guess: where each substep's sweeps start. "zero" (default): dX = 0 as in DBD Algorithm 1;
+          "tree": the exact solution of the linearised point constraints of the joint tree
+          (solvers/tree.py), which long chains need to hold their tension.
         """
         dt = _scalar(dt, "finalize: dt")
         if dt <= 0.0:
@@ -822,6 +827,8 @@ class ModelBuilder:
             if solver in PLANNED_SOLVERS:
                 raise ValueError(f"finalize: solver {solver!r} is not available yet; use 'dbd'")
             raise ValueError(f"finalize: unknown solver {solver!r}; choose one of {SOLVERS}")
+        if initial_guess not in INITIAL_GUESSES:
+            raise ValueError(f"finalize: unknown initial_guess {initial_guess!r}; choose one of {INITIAL_GUESSES}")
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
         contact_margin = self._non_negative(contact_margin, "finalize: contact_margin")
@@ -831,7 +838,7 @@ class ModelBuilder:
             dt=dt, substeps=int(substeps), iterations=int(iterations), solver=solver,
             jacobi=bool(jacobi), velocity_dependent_inertia=bool(velocity_dependent_inertia),
             checkpoint=bool(checkpoint), contact_margin=contact_margin, contact_compliance=contact_compliance,
-            restitution_iterations=int(restitution_iterations),
+            restitution_iterations=int(restitution_iterations), initial_guess=initial_guess,
         )  # fmt: skip
         return self._model(options)
 

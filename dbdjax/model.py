@@ -373,6 +373,7 @@ class Options:
     contact_margin: float = 0.01  # m: shapes closer than this get contact slots (speculative)
     contact_compliance: float = 0.0  # m/N: 0 is rigid; > 0 softens contacts (smoother gradients)
     restitution_iterations: int = 2  # Gauss-Seidel sweeps of the velocity pass
+    initial_guess: str = "zero"  # "zero": dX = 0 (Algorithm 1); "tree": exact solve of the tree's linearised points
 
 
 @dataclasses.dataclass(frozen=True)

@@ -109,8 +109,9 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
     return frozenset(used | {"point"})
 
 
-def _anchor_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
-    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX."""
+def joint_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
+    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX, for one joint
+    (no J axis) whose bodies have the orientations quat_a, quat_b."""
     return row.anchor_points(pair, joint.local_anchor_a, joint.local_anchor_b, flag.world_a, flag.world_b,
                              quat_a, quat_b)  # fmt: skip
 
@@ -138,7 +139,7 @@ def _slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
     Body a's arm reaches the point of a level with p_b, so an impulse along the axis acts on the
     line through both points."""
     quat_a, quat_b = pair.current_quats()
-    delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
+    delta, arm_a, arm_b = joint_points(joint, flag, pair, quat_a, quat_b)
     axis = math.quat_rotate(quat_a, joint.local_axis_a)
     travel = -math.dot(delta, axis)
     across = delta + travel[..., None] * axis
@@ -258,7 +259,7 @@ def project(
     # A slider only removes the part across its axis (SI (51)), a planar joint only the part along
     # its normal; both act level with p_b on a.
     quat_a, quat_b = pair.current_quats()
-    delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
+    delta, arm_a, arm_b = joint_points(joint, flag, pair, quat_a, quat_b)
     constrained = None
     if "slider" in rows or "planar" in rows:
         axis = math.quat_rotate(quat_a, joint.local_axis_a)

@@ -2,6 +2,8 @@
 
     prepare:  inverse masses and world inverse inertias at X* (once per substep), and each
               colour's constraint parameters gathered into its own arrays
+    guess:    dX = 0, or with initial_guess="tree" dX and the joints' point multipliers from the
+              exact linear solve of the joint tree's point constraints (solvers/tree.py)
     repeat `iterations` times:                                   (lax.scan)
         for each colour, in order:                               (unrolled: a model has few)
             for each constraint family present in the colour:
@@ -24,9 +26,10 @@ import numpy as np
 
 from dbdjax import constraints, integrator
 from dbdjax.collision import ContactSlots
-from dbdjax.constraints import Family
+from dbdjax.constraints import Family, joints
 from dbdjax.constraints.rows import BodySet
 from dbdjax.model import Colour, Model, State, with_world_row
+from dbdjax.solvers import tree
 
 
 def body_table(model: Model, state: State, h: float) -> BodySet:
@@ -125,6 +128,12 @@ def solve(
     multipliers = [jnp.zeros((len(f.bodies), f.num_multipliers), dtype) for f in all_families]
     if any(len(f.bodies) for f in all_families):
         table = body_table(model, predicted, h)
+        if options.initial_guess == "tree" and tree.forest(structure)[0].size:
+            # Start from the exact linear solve of the tree's point constraints, each joint's point
+            # multiplier at the impulse it took there (families[0] are the joints).
+            dx, dtheta, kappa = tree.initial_guess(model, table)
+            table = table._replace(dx=dx, dtheta=dtheta)
+            multipliers[0] = multipliers[0].at[:, joints.POINT : joints.POINT + 3].set(kappa)
         if options.jacobi:
             dx, dtheta, multipliers = _jacobi(all_families, table, options.iterations, multipliers)
         else:
