@@ -397,23 +397,26 @@ def _normalized(v: Vec) -> Vec:
     return tuple(c * inverse for c in v)
 
 
-def _local_normal(kind: jnp.ndarray, size: Vec, x: Vec) -> Vec:
-    """Outward unit normal at the local surface point x of a shape of `kind` (arrays per pixel)."""
-    sphere = _normalized(x)
-    capsule = _normalized((x[0], x[1], x[2] - jnp.clip(x[2], -size[1], size[1])))
-    # the box face the point lies on: the axis where |x_i| - h_i is largest (first on ties)
-    excess = [jnp.abs(x[i]) - size[i] for i in range(3)]
-    first = (excess[0] >= excess[1]) & (excess[0] >= excess[2])
-    second = ~first & (excess[1] >= excess[2])
-    faces = (first, second, ~first & ~second)
-    box = tuple(jnp.where(faces[i], jnp.sign(x[i]) + (x[i] == 0.0), 0.0) for i in range(3))
-    plane = (jnp.zeros_like(x[0]), jnp.zeros_like(x[0]), jnp.ones_like(x[0]))
-    normal = []
-    for i in range(3):
-        value = jnp.where(kind == SPHERE, sphere[i], plane[i])
-        value = jnp.where(kind == CAPSULE, capsule[i], value)
-        normal.append(jnp.where(kind == BOX, box[i], value))
-    return tuple(normal)
+def _local_normal(kind: jnp.ndarray, size: Vec, x: Vec, kinds: frozenset) -> Vec:
+    """Outward unit normal at the local surface point x of a shape of `kind` (arrays per pixel);
+    only the formulas of the shape kinds in `kinds` (static: those of the model) are built."""
+    normals = {PLANE: (jnp.zeros_like(x[0]), jnp.zeros_like(x[0]), jnp.ones_like(x[0]))}
+    if SPHERE in kinds:
+        normals[SPHERE] = _normalized(x)
+    if CAPSULE in kinds:
+        normals[CAPSULE] = _normalized((x[0], x[1], x[2] - jnp.clip(x[2], -size[1], size[1])))
+    if BOX in kinds:
+        # the face the point lies on: the axis where |x_i| - h_i is largest (first on ties)
+        excess = [jnp.abs(x[i]) - size[i] for i in range(3)]
+        first = (excess[0] >= excess[1]) & (excess[0] >= excess[2])
+        second = ~first & (excess[1] >= excess[2])
+        faces = (first, second, ~first & ~second)
+        normals[BOX] = tuple(jnp.where(faces[i], jnp.where(x[i] >= 0.0, 1.0, -1.0), 0.0) for i in range(3))
+    normal = normals[PLANE]
+    for shape_kind in (SPHERE, CAPSULE, BOX):
+        if shape_kind in normals:
+            normal = tuple(jnp.where(kind == shape_kind, normals[shape_kind][i], normal[i]) for i in range(3))
+    return normal
 
 
 def _trace(model: Model, pos: jnp.ndarray, quat: jnp.ndarray, origin: Vec, rays: Vec) -> tuple[jnp.ndarray, ...]:
@@ -494,7 +497,7 @@ def _cast(model: Model, state: State, camera: Camera, supersample: int, pos, qua
     offset = tuple(origin[i] - p[i] for i in range(3))
     local = tuple(_dot3(offset, column[i]) + t * _dot3(rays, column[i]) for i in range(3))
     kind = jnp.asarray(model.structure.shape_kind.array, jnp.int32)[index]
-    n = _local_normal(kind, size, local)
+    n = _local_normal(kind, size, local, frozenset(model.structure.shape_kind.array.tolist()))
     normal = tuple(column[0][i] * n[0] + column[1][i] * n[1] + column[2][i] * n[2] for i in range(3))
     facing = jnp.where(_dot3(normal, rays) > 0.0, -1.0, 1.0)  # seen from behind: planes, from inside
     normal = tuple(jnp.where(hit, facing * c, 0.0) for c in normal)
