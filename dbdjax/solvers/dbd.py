@@ -56,7 +56,7 @@ def _project(family: Family, table: BodySet, dx, dtheta, multipliers):
     return moved_dx.reshape(-1, 3), moved_dtheta.reshape(-1, 3), multipliers
 
 
-def _gauss_seidel(
+def gauss_seidel(
     colours: tuple[Colour, ...], families: list[Family], table: BodySet, iterations: int, multipliers: list
 ) -> tuple[jnp.ndarray, jnp.ndarray, list]:
     """`iterations` sweeps over the colours; multipliers: one (M_f, m_f) array per family, in
@@ -88,7 +88,7 @@ def _gauss_seidel(
     return dx, dtheta, result
 
 
-def _jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list):
+def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list):
     """Every node at once from the same dX; each body moves by the mean of its nodes' requests."""
     n = table.dx.shape[0] - 1
     used = [f for f, family in enumerate(families) if len(family.bodies)]
@@ -135,9 +135,9 @@ def solve(
             table = table._replace(dx=dx, dtheta=dtheta)
             multipliers[0] = multipliers[0].at[:, joints.POINT : joints.POINT + 3].set(kappa)
         if options.jacobi:
-            dx, dtheta, multipliers = _jacobi(all_families, table, options.iterations, multipliers)
+            dx, dtheta, multipliers = jacobi(all_families, table, options.iterations, multipliers)
         else:
-            dx, dtheta, multipliers = _gauss_seidel(structure.colours, all_families, table, options.iterations,
+            dx, dtheta, multipliers = gauss_seidel(structure.colours, all_families, table, options.iterations,
                                                     multipliers)  # fmt: skip
     else:
         dx = dtheta = jnp.zeros((n + 1, 3), dtype)
@@ -155,7 +155,7 @@ def restitution(
         return state
     families = constraints.restitution_families(model, contacts, h)
     table = body_table(model, state, h)
-    dv, dw, _ = _gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
+    dv, dw, _ = gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
                               list(normal))  # fmt: skip
     n = model.num_bodies
     return State(pos=state.pos, quat=state.quat, vel=state.vel + dv[:n], ang_vel=state.ang_vel + dw[:n])
