@@ -22,6 +22,9 @@ from dbdjax.envs.core import DbdFuncEnv, EnvState, seed_key
 from dbdjax.envs.ik_chain import IKChainReach, IKChainReachEnv, IKChainReachVectorEnv, evaluate_expert, expert_action
 from dbdjax.envs.wrappers import DbdEnv, DbdVectorEnv
 
+# id -> the task class (the functional core)
+TASKS = {"dbdjax/IKChainReach-v0": IKChainReach}
+
 # id -> (single-env entry point, vector entry point, max_episode_steps)
 ENVIRONMENTS = {
     "dbdjax/IKChainReach-v0": (
@@ -54,6 +57,7 @@ register_all()
 
 __all__ = [
     "ENVIRONMENTS",
+    "TASKS",
     "DbdEnv",
     "DbdFuncEnv",
     "DbdVectorEnv",
