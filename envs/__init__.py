@@ -20,10 +20,15 @@ import gymnasium
 
 from dbdjax.envs.core import DbdFuncEnv, EnvState, seed_key
 from dbdjax.envs.ik_chain import IKChainReach, IKChainReachEnv, IKChainReachVectorEnv, evaluate_expert, expert_action
+from dbdjax.envs.ragdoll_envs import RagdollEnv, RagdollStand, RagdollTrack
 from dbdjax.envs.wrappers import DbdEnv, DbdVectorEnv
 
 # id -> the task class (the functional core)
-TASKS = {"dbdjax/IKChainReach-v0": IKChainReach}
+TASKS = {
+    "dbdjax/IKChainReach-v0": IKChainReach,
+    "dbdjax/RagdollStand-v0": RagdollStand,
+    "dbdjax/RagdollTrack-v0": RagdollTrack,
+}
 
 # id -> (single-env entry point, vector entry point, max_episode_steps)
 ENVIRONMENTS = {
@@ -31,6 +36,16 @@ ENVIRONMENTS = {
         "dbdjax.envs.ik_chain:IKChainReachEnv",
         "dbdjax.envs.ik_chain:IKChainReachVectorEnv",
         IKChainReach.default_max_episode_steps,
+    ),
+    "dbdjax/RagdollStand-v0": (
+        "dbdjax.envs.ragdoll_envs:RagdollStandEnv",
+        "dbdjax.envs.ragdoll_envs:RagdollStandVectorEnv",
+        RagdollEnv.default_max_episode_steps,
+    ),
+    "dbdjax/RagdollTrack-v0": (
+        "dbdjax.envs.ragdoll_envs:RagdollTrackEnv",
+        "dbdjax.envs.ragdoll_envs:RagdollTrackVectorEnv",
+        RagdollEnv.default_max_episode_steps,
     ),
 }
 
@@ -65,6 +80,9 @@ __all__ = [
     "IKChainReach",
     "IKChainReachEnv",
     "IKChainReachVectorEnv",
+    "RagdollEnv",
+    "RagdollStand",
+    "RagdollTrack",
     "evaluate_expert",
     "expert_action",
     "register_all",

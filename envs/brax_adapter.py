@@ -50,9 +50,7 @@ class BraxEnv(Env):
         """rng: (2,) uint32 PRNG key (as Brax's VmapWrapper passes one per env)."""
         task_state, obs, info = self.func_env.reset(rng)
         zero = jnp.zeros((), jnp.float32)
-        return State(
-            pipeline_state=task_state, obs=obs, reward=zero, done=zero, metrics=_metrics(info), info={}
-        )
+        return State(pipeline_state=task_state, obs=obs, reward=zero, done=zero, metrics=_metrics(info), info={})
 
     def step(self, state: State, action: jax.Array) -> State:
         """action: (action_size,) in [-1, 1] (clipped; NaN/inf entries end the episode)."""

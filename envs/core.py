@@ -195,6 +195,11 @@ class DbdFuncEnv(FuncEnv):
         """The task variables after a step; default unchanged."""
         return state.task
 
+    def render_scene(self, state: EnvState) -> tuple[Model, State, dict[str, Any]]:
+        """(model, physics state, keyword arguments of `dbdjax.render.render`) that draw one
+        (unbatched) state; default: the task's own model and physics, the default camera."""
+        return self.model, state.physics, {}
+
     # ------------------------------------------------------------------------ actions
     def check_action(self, action: Any) -> jnp.ndarray:
         """`action` as a float array of shape (action_size,); ValueError for any other shape."""
@@ -348,3 +353,50 @@ def hinge_angles(model: Model, physics: State, joints: Sequence[int]) -> tuple[j
     world_axis = math.quat_rotate(quat_a, axis)
     rate = math.dot(ang_vel[body_b] - ang_vel[body_a], world_axis)
     return angle, rate
+
+
+def joint_coordinates(
+    model: Model, physics: State, joints: Sequence[int], kinds: Sequence[str]
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Joint positions and rates in the layout of their drive targets, each (D,).
+
+    joints: joint indices; kinds: "ball" or "hinge" per joint. A ball joint gives 3 entries, the
+    rotation vector (rad) of q_a^-1 q_b rest^-1 in a's frame (the engine's ball drive target) and
+    the relative angular velocity in a's frame (rad/s); a hinge gives 1, its angle and rate
+    (`hinge_angles`). D = 3 x balls + hinges, in the order given.
+    """
+    if len(joints) != len(kinds) or any(kind not in ("ball", "hinge") for kind in kinds):
+        raise ValueError(f"joint_coordinates: need one kind ('ball' or 'hinge') per joint, got {kinds!r}")
+    structure = model.structure
+    index = np.asarray(joints, dtype=np.int32)
+    body_a = structure.joint_body_a.array[index]
+    body_b = structure.joint_body_b.array[index]
+    quat = jnp.concatenate([physics.quat, math.quat_identity((1,)).astype(physics.quat.dtype)])
+    ang_vel = jnp.concatenate([physics.ang_vel, jnp.zeros((1, 3), physics.ang_vel.dtype)])
+    quat_a = quat[body_a]
+    relative = math.quat_multiply(
+        math.quat_multiply(math.quat_conjugate(quat_a), quat[body_b]),
+        math.quat_conjugate(model.joints.rest_rotation[index]),
+    )
+    axis = model.joints.local_axis_a[index]
+    relative_rate = ang_vel[body_b] - ang_vel[body_a]  # world frame
+    ball_position = math.quat_log(relative)
+    ball_rate = math.quat_rotate_inverse(quat_a, relative_rate)
+    hinge_position = math.quat_twist_angle(relative, axis)
+    hinge_rate = math.dot(relative_rate, math.quat_rotate(quat_a, axis))
+    positions, rates = [], []
+    for k, kind in enumerate(kinds):
+        if kind == "ball":
+            positions.append(ball_position[k])
+            rates.append(ball_rate[k])
+        else:
+            positions.append(hinge_position[k, None])
+            rates.append(hinge_rate[k, None])
+    return jnp.concatenate(positions), jnp.concatenate(rates)
+
+
+def yaw_rotate_inverse(yaw: jnp.ndarray, vectors: jnp.ndarray) -> jnp.ndarray:
+    """vectors (..., 3) seen in the heading frame: rotated by -yaw (rad) about world z."""
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    x, y = vectors[..., 0], vectors[..., 1]
+    return jnp.stack([c * x + s * y, -s * x + c * y, vectors[..., 2]], axis=-1)

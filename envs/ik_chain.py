@@ -131,6 +131,10 @@ class IKChainReach(DbdFuncEnv):
             joints.append(joint)
         builder.set_control_range(slice(0, n), -joint_range, joint_range)
         model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations)
+        # For pictures only: the same chain and a free marker body whose sphere shows the goal.
+        marker = builder.add_body(pos=(0.0, 0.0, 0.0), mass=1.0, inertia=(1.0, 1.0, 1.0), name="goal")
+        builder.add_sphere(marker, 2.0 * link_radius, contype=0, conaffinity=0)
+        self.render_model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations)
 
         self.num_links = n
         self.joints = tuple(joints)
@@ -179,6 +183,21 @@ class IKChainReach(DbdFuncEnv):
     def distance(self, state: EnvState) -> jnp.ndarray:
         """() m, tip-goal distance."""
         return math.safe_norm(self.tip(state.physics) - state.task.goal)
+
+    def render_scene(self, state: EnvState):
+        """The chain and a sphere at the goal, from a fixed camera that frames the workspace."""
+        from dbdjax import render  # noqa: PLC0415 (pictures are optional)
+
+        physics = state.physics
+        goal = state.task.goal[None]
+        scene = dbd.State(
+            pos=jnp.concatenate([physics.pos, goal]),
+            quat=jnp.concatenate([physics.quat, math.quat_identity((1,)).astype(physics.quat.dtype)]),
+            vel=jnp.concatenate([physics.vel, jnp.zeros_like(goal)]),
+            ang_vel=jnp.concatenate([physics.ang_vel, jnp.zeros_like(goal)]),
+        )
+        camera = render.camera_looking_at((0.0, 0.0, 0.0), distance=2.6 * self.reach, azimuth=-60.0, elevation=30.0)
+        return self.render_model, scene, {"camera": camera}
 
     # ------------------------------------------------------------------------ task hooks
     def task_initial(self, key: jnp.ndarray):

@@ -122,7 +122,8 @@ def render_frame(func_env: DbdFuncEnv, state: EnvState, **kwargs) -> np.ndarray:
         raise NotImplementedError(
             "render_mode='rgb_array' draws with dbdjax.render, which this installation does not have yet"
         ) from error
-    frame = render.render(func_env.model, state.physics, **kwargs)
+    model, physics, options = func_env.render_scene(state)
+    frame = render.render(model, physics, **{**options, **kwargs})
     return np.asarray(frame, dtype=np.uint8)
 
 
