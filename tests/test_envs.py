@@ -309,9 +309,16 @@ def test_brax_adapter_resets_and_steps_like_the_core(task):
     assert env.observation_size == 24 and env.action_size == 5 and env.backend == "dbdjax"
     core = env.func_env
     key = jax.random.PRNGKey(0)
-    state = quick_jit(env.reset)(key)
-    stepped = quick_jit(env.step)(state, jnp.full(5, 0.5))
-    expected = quick_jit(core.step)(core.reset(key)[0], jnp.full(5, 0.5))
+    action = jnp.full(5, 0.5)
+
+    @quick_jit
+    def both(key):
+        # One program for both: separately compiled programs may round differently, and this
+        # chain's step amplifies rounding (see envs/ik_chain.py).
+        state = env.reset(key)
+        return state, env.step(state, action), core.step(core.reset(key)[0], action)
+
+    state, stepped, expected = both(key)
     np.testing.assert_array_equal(np.asarray(stepped.obs), np.asarray(expected[1]))
     assert float(stepped.reward) == float(expected[2]) and float(stepped.done) == 0.0
     assert set(stepped.metrics) == set(state.metrics) >= {"is_success", "reward_progress", "nonfinite_action"}
@@ -353,8 +360,9 @@ def test_ragdoll_observation_does_not_depend_on_the_heading(stand):
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     state, obs, _ = quick_jit(jax.vmap(stand.reset))(keys)
     headings = np.asarray(jax.vmap(stand.heading)(state.physics))
-    assert np.ptp(headings) > 0.5  # three different headings
-    assert np.abs(np.asarray(state.physics.pos[0] - state.physics.pos[1])).max() > 0.1
+    first, last = np.argmin(headings), np.argmax(headings)
+    assert headings[last] - headings[first] > 0.5  # different headings: the bodies are elsewhere
+    assert np.abs(np.asarray(state.physics.pos[first] - state.physics.pos[last])).max() > 0.05
     np.testing.assert_allclose(np.asarray(obs[1:]), np.broadcast_to(np.asarray(obs[0]), obs[1:].shape), atol=2e-6)
     assert obs.shape == (3, 133) and stand.observation_size == 133 and stand.action_size == 26
 
@@ -397,12 +405,8 @@ def test_track_reference_stays_in_range_and_its_rate_is_its_derivative(track):
     target, rate = jax.vmap(track.reference)(times)
     low, high = track.control_low, track.control_high
     assert np.all(np.asarray(target) >= low - 1e-6) and np.all(np.asarray(target) <= high + 1e-6)
-    epsilon = 1e-3
-    numeric = (jax.vmap(track.reference)(times + epsilon)[0] - jax.vmap(track.reference)(times - epsilon)[0]) / (
-        2 * epsilon
-    )
-    # float32: rounding of q (6e-8) over 2 epsilon gives 3e-5; the truncation error is 1.3e-5.
-    np.testing.assert_allclose(np.asarray(rate), np.asarray(numeric), atol=1e-4)
+    derivative = jax.vmap(jax.jacfwd(lambda t: track.reference(t)[0]))(times)  # d q_ref / dt by autodiff
+    np.testing.assert_allclose(np.asarray(rate), np.asarray(derivative), rtol=1e-6, atol=1e-6)
     controls = track.doll.controls
     half = jax.vmap(track.reference)(times + track.period / 2)[0]
     for left, right in (("knee_l", "knee_r"), ("hip_l", "hip_r"), ("elbow_l", "elbow_r")):
