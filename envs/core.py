@@ -11,9 +11,9 @@ Both are pure functions of arrays (the Model is closed over): they jit, vmap ove
 states and keys, and differentiate: `jax.grad` of a sum of rewards over a rollout with respect to
 the actions goes through `dbd.step` (the engine is differentiable with respect to its controls).
 The FuncEnv methods (`initial`, `transition`, `observation`, `reward`, `terminal`, `state_info`,
-`transition_info`) are the same computation split the way Gymnasium's functional API wants, so
-`gymnasium.envs.functional_jax_env.FunctionalJaxEnv(func_env)` also runs a task; the wrappers in
-`dbdjax.envs.wrappers` use the fused `reset`/`step` (one jitted call per step).
+`transition_info`) are the same computation split the way Gymnasium's functional API wants, with
+its signatures (Gymnasium's own `FunctionalJaxEnv` adapter is not exercised by the tests); the
+wrappers in `dbdjax.envs.wrappers` use the fused `reset`/`step` (one jitted call per step).
 
 Conventions every task follows:
 
