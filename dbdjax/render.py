@@ -50,7 +50,7 @@ from dbdjax.math import (
     dot,
     quat_multiply,
     quat_rotate,
-    quat_rotate_inverse,
+    quat_to_matrix,
     safe_norm,
     safe_normalize,
     safe_sqrt,
@@ -245,17 +245,24 @@ def _camera_frame(camera: Camera) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray
     return forward, right, cross(right, forward)
 
 
+def _camera_rays(camera: Camera, supersample: int, dtype) -> Vec:
+    """Unit ray directions through the pixel centres as (x, y, z) components, each (H s, W s)."""
+    forward, right, up = (v.astype(dtype) for v in _camera_frame(camera))
+    width, height = camera.width * supersample, camera.height * supersample
+    tan_half = jnp.tan(jnp.deg2rad(camera.fov.astype(dtype)) / 2)
+    x = ((jnp.arange(width, dtype=dtype) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
+    y = (1.0 - (jnp.arange(height, dtype=dtype) + 0.5) / height * 2.0) * tan_half
+    x, y = x[None, :], y[:, None]
+    rays = tuple(forward[i] + x * right[i] + y * up[i] for i in range(3))
+    # forward, right and up are orthonormal, so the length is at least 1: a plain division
+    length = jnp.sqrt(_dot3(rays, rays))
+    return tuple(r / length for r in rays)
+
+
 def camera_rays(camera: Camera, supersample: int = 1) -> jnp.ndarray:
     """Unit ray directions (H s, W s, 3) through the pixel centres (row 0 at the top), world frame;
     they all start at camera.position. s = supersample: s x s rays per pixel."""
-    forward, right, up = _camera_frame(camera)
-    width, height = camera.width * supersample, camera.height * supersample
-    tan_half = jnp.tan(jnp.deg2rad(camera.fov) / 2)
-    dtype = forward.dtype
-    x = ((jnp.arange(width, dtype=dtype) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
-    y = (1.0 - (jnp.arange(height, dtype=dtype) + 0.5) / height * 2.0) * tan_half
-    rays = forward + x[None, :, None] * right + y[:, None, None] * up
-    return safe_normalize(rays)[0]
+    return jnp.stack(_camera_rays(camera, supersample, camera.position.dtype), axis=-1)
 
 
 def project(camera: Camera, points: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -275,9 +282,17 @@ def project(camera: Camera, points: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarr
 
 
 # ------------------------------------------------------------------------------------------------
-# Ray-shape intersection, in the shape's frame. o: ray origins (..., 3), d: unit directions
-# (..., 3), broadcasting. Each returns the nearest distance t > _NEAR along the ray, _FAR on a miss.
+# Ray-shape intersection. Vectors are (x, y, z) tuples of arrays that broadcast against each other
+# (structure of arrays: XLA on CPU vectorises over pixels instead of over a minor axis of 3), in
+# the shape's frame. o: ray origins, d: unit directions. Each returns the nearest distance
+# t > _NEAR along the ray, _FAR where it misses.
 # ------------------------------------------------------------------------------------------------
+
+Vec = tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]
+
+
+def _dot3(a: Vec, b: Vec) -> jnp.ndarray:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def _nearest(*candidates: tuple[jnp.ndarray, jnp.ndarray]) -> jnp.ndarray:
@@ -289,123 +304,146 @@ def _nearest(*candidates: tuple[jnp.ndarray, jnp.ndarray]) -> jnp.ndarray:
     return best
 
 
-def _sphere_roots(o: jnp.ndarray, d: jnp.ndarray, radius: jnp.ndarray):
+def _sphere_roots(o: Vec, d: Vec, radius: jnp.ndarray):
     """Both crossings of a ray with the sphere |x| = radius: ((t_in, t_out), hit).
 
     Uses the perpendicular offset f = o - (o.d) d rather than b^2 - c (no cancellation for
     small spheres far away; Haines et al., Ray Tracing Gems ch. 7)."""
-    b = dot(o, d)
-    f = o - b[..., None] * d
-    disc = radius * radius - dot(f, f)
+    b = _dot3(o, d)
+    f = tuple(o[i] - b * d[i] for i in range(3))
+    disc = radius * radius - _dot3(f, f)
     half = safe_sqrt(jnp.maximum(disc, 0.0))
     return (-b - half, -b + half), disc >= 0.0
 
 
-def hit_plane(o: jnp.ndarray, d: jnp.ndarray) -> jnp.ndarray:
-    """The plane z = 0 (both sides). A ray parallel to it (d_z = 0) misses."""
-    return _plane_distance(o[..., 2], d[..., 2])
-
-
 def _plane_distance(height: jnp.ndarray, along: jnp.ndarray) -> jnp.ndarray:
-    """t where a ray at signed `height` above a plane, moving `along` its normal, crosses it."""
+    """t where a ray at signed `height` above a plane, moving `along` its normal, crosses it (both
+    sides). A ray parallel to the plane misses."""
     parallel = jnp.abs(along) <= _PARALLEL
     return _nearest((-height / jnp.where(parallel, 1.0, along), ~parallel))
 
 
-def hit_sphere(o: jnp.ndarray, d: jnp.ndarray, radius: jnp.ndarray) -> jnp.ndarray:
+def _hit_sphere(o: Vec, d: Vec, radius: jnp.ndarray) -> jnp.ndarray:
     """The sphere |x| = radius (a ray starting inside sees its far side)."""
     (t_in, t_out), hit = _sphere_roots(o, d, radius)
     return _nearest((t_in, hit), (t_out, hit))
 
 
-def hit_capsule(o: jnp.ndarray, d: jnp.ndarray, radius: jnp.ndarray, half_length: jnp.ndarray) -> jnp.ndarray:
+def _hit_capsule(o: Vec, d: Vec, radius: jnp.ndarray, half_length: jnp.ndarray) -> jnp.ndarray:
     """The capsule around the segment z in [-half_length, half_length] of the z axis: the side of
     the cylinder of `radius` where it lies between the ends, and the two end spheres (which alone
     make the capsule when half_length = 0 or the ray runs along the axis)."""
-    dxy, oxy = d[..., :2], o[..., :2]
-    a = jnp.sum(dxy * dxy, axis=-1)
+    a = d[0] * d[0] + d[1] * d[1]
     along_axis = a <= _PARALLEL
     safe_a = jnp.where(along_axis, 1.0, a)
-    closest = -jnp.sum(oxy * dxy, axis=-1) / safe_a  # t of the ray point nearest the axis
-    f = oxy + closest[..., None] * dxy
-    disc = radius * radius - jnp.sum(f * f, axis=-1)
+    closest = -(o[0] * d[0] + o[1] * d[1]) / safe_a  # t of the ray point nearest the axis
+    fx, fy = o[0] + closest * d[0], o[1] + closest * d[1]
+    disc = radius * radius - (fx * fx + fy * fy)
     half = safe_sqrt(jnp.maximum(disc, 0.0) / safe_a)
     side = (disc >= 0.0) & ~along_axis
     candidates = []
     for t in (closest - half, closest + half):
-        z = o[..., 2] + t * d[..., 2]
-        candidates.append((t, side & (jnp.abs(z) <= half_length)))
+        candidates.append((t, side & (jnp.abs(o[2] + t * d[2]) <= half_length)))
     for sign in (-1.0, 1.0):
-        end = jnp.stack([jnp.zeros_like(half_length), jnp.zeros_like(half_length), sign * half_length], axis=-1)
-        (t_in, t_out), hit = _sphere_roots(o - end, d, radius)
+        (t_in, t_out), hit = _sphere_roots((o[0], o[1], o[2] - sign * half_length), d, radius)
         candidates += [(t_in, hit), (t_out, hit)]
     return _nearest(*candidates)
 
 
-def hit_box(o: jnp.ndarray, d: jnp.ndarray, half_extents: jnp.ndarray) -> jnp.ndarray:
+def _hit_box(o: Vec, d: Vec, half_extents: jnp.ndarray) -> jnp.ndarray:
     """The box |x_i| <= half_extents_i by the slab method (Kay and Kajiya): the ray is inside all
     three slabs between t_enter = max of the entries and t_exit = min of the exits. A direction
     component of zero means the ray is always (or never) inside that slab."""
-    parallel = jnp.abs(d) <= _PARALLEL
-    inverse = 1.0 / jnp.where(parallel, 1.0, d)
-    t1 = (-half_extents - o) * inverse
-    t2 = (half_extents - o) * inverse
-    inside = jnp.abs(o) <= half_extents
-    enter = jnp.where(parallel, jnp.where(inside, -_FAR, _FAR), jnp.minimum(t1, t2))
-    leave = jnp.where(parallel, jnp.where(inside, _FAR, -_FAR), jnp.maximum(t1, t2))
-    t_enter, t_exit = jnp.max(enter, axis=-1), jnp.min(leave, axis=-1)
+    t_enter, t_exit = None, None
+    for i in range(3):
+        parallel = jnp.abs(d[i]) <= _PARALLEL
+        inverse = 1.0 / jnp.where(parallel, 1.0, d[i])
+        t1 = (-half_extents[i] - o[i]) * inverse
+        t2 = (half_extents[i] - o[i]) * inverse
+        inside = jnp.abs(o[i]) <= half_extents[i]
+        enter = jnp.where(parallel, jnp.where(inside, -_FAR, _FAR), jnp.minimum(t1, t2))
+        leave = jnp.where(parallel, jnp.where(inside, _FAR, -_FAR), jnp.maximum(t1, t2))
+        t_enter = enter if t_enter is None else jnp.maximum(t_enter, enter)
+        t_exit = leave if t_exit is None else jnp.minimum(t_exit, leave)
     hit = t_enter <= t_exit
     return _nearest((t_enter, hit), (t_exit, hit))
 
 
-def _local_normal(kind: jnp.ndarray, size: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
-    """Outward unit normal (..., 3) at the local surface point x (..., 3) of a shape of `kind`."""
-    sphere = safe_normalize(x)[0]
-    axis_point = jnp.clip(x[..., 2], -size[..., 1], size[..., 1])
-    capsule = safe_normalize(x - jnp.stack([jnp.zeros_like(axis_point)] * 2 + [axis_point], axis=-1))[0]
-    # the box face the point lies on: the axis where |x_i| - h_i is largest (first on ties)
-    excess = jnp.abs(x) - size
-    first = (excess[..., 0] >= excess[..., 1]) & (excess[..., 0] >= excess[..., 2])
-    second = ~first & (excess[..., 1] >= excess[..., 2])
-    face = jnp.stack([first, second, ~first & ~second], axis=-1)
-    box = jnp.where(face, jnp.where(x >= 0.0, 1.0, -1.0), 0.0).astype(x.dtype)
-    plane = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], x.dtype), x.shape)
-    normal = jnp.where((kind == SPHERE)[..., None], sphere, plane)
-    normal = jnp.where((kind == CAPSULE)[..., None], capsule, normal)
-    return jnp.where((kind == BOX)[..., None], box, normal)
+def _split(v: jnp.ndarray) -> Vec:
+    return v[..., 0], v[..., 1], v[..., 2]
 
 
-def _distances(
-    model: Model, pos: jnp.ndarray, quat: jnp.ndarray, origin: jnp.ndarray, rays: jnp.ndarray
-) -> jnp.ndarray:
-    """(K, ...) distance along each ray to each shape, _FAR where it misses. origin: (..., 3) or
-    (3,), rays: (..., 3) or (3,) unit directions, world frame (broadcast together: the primary
-    pass shares one origin, the shadow pass one direction, so only the varying one is rotated).
-    Shapes are grouped by kind (static index sets), each group vmapped over its shapes."""
+def _shape_distance(kind: int, size: jnp.ndarray, pos: jnp.ndarray, rotation: jnp.ndarray, origin: Vec, rays: Vec):
+    """t along world rays to one shape of static `kind`; rotation (3, 3) takes local to world."""
+    offset = tuple(origin[i] - pos[i] for i in range(3))
+    if kind == PLANE:  # only the components along the normal (local z) matter
+        normal = rotation[:, 2]
+        return _plane_distance(_dot3(offset, normal), _dot3(rays, normal))
+    if kind == SPHERE:  # rotation-invariant: no change of frame
+        return _hit_sphere(offset, rays, size[0])
+    # world -> local: x_local_i = sum_j R_ji x_j (R^T x)
+    o = tuple(_dot3(offset, rotation[:, i]) for i in range(3))
+    d = tuple(_dot3(rays, rotation[:, i]) for i in range(3))
+    if kind == CAPSULE:
+        return _hit_capsule(o, d, size[0], size[1])
+    return _hit_box(o, d, size)
+
+
+def _normalized(v: Vec) -> Vec:
+    """v / |v| by components; the zero vector stays zero (double where: finite gradients)."""
+    squared = _dot3(v, v)
+    is_zero = squared <= 1e-24
+    inverse = jnp.where(is_zero, 0.0, 1.0 / jnp.sqrt(jnp.where(is_zero, 1.0, squared)))
+    return tuple(c * inverse for c in v)
+
+
+def _local_normal(kind: jnp.ndarray, size: Vec, x: Vec, kinds: frozenset) -> Vec:
+    """Outward unit normal at the local surface point x of a shape of `kind` (arrays per pixel);
+    only the formulas of the shape kinds in `kinds` (static: those of the model) are built."""
+    normals = {PLANE: (jnp.zeros_like(x[0]), jnp.zeros_like(x[0]), jnp.ones_like(x[0]))}
+    if SPHERE in kinds:
+        normals[SPHERE] = _normalized(x)
+    if CAPSULE in kinds:
+        normals[CAPSULE] = _normalized((x[0], x[1], x[2] - jnp.clip(x[2], -size[1], size[1])))
+    if BOX in kinds:
+        # the face the point lies on: the axis where |x_i| - h_i is largest (first on ties)
+        excess = [jnp.abs(x[i]) - size[i] for i in range(3)]
+        first = (excess[0] >= excess[1]) & (excess[0] >= excess[2])
+        second = ~first & (excess[1] >= excess[2])
+        faces = (first, second, ~first & ~second)
+        normals[BOX] = tuple(jnp.where(faces[i], jnp.where(x[i] >= 0.0, 1.0, -1.0), 0.0) for i in range(3))
+    normal = normals[PLANE]
+    for shape_kind in (SPHERE, CAPSULE, BOX):
+        if shape_kind in normals:
+            normal = tuple(jnp.where(kind == shape_kind, normals[shape_kind][i], normal[i]) for i in range(3))
+    return normal
+
+
+def _trace(model: Model, pos: jnp.ndarray, quat: jnp.ndarray, origin: Vec, rays: Vec) -> tuple[jnp.ndarray, ...]:
+    """(nearest distance, index of the shape hit) along world rays over every shape; _FAR and an
+    arbitrary index where nothing is hit. origin and rays broadcast together: the primary pass
+    shares one origin, the shadow pass one direction. Shapes are grouped by kind (static index
+    sets), each group vmapped over its shapes and reduced before the next: memory is one group's
+    (G, H, W) distances at a time."""
     kind = model.structure.shape_kind.array
     size = model.shapes.size.astype(pos.dtype)
-    batch = jnp.broadcast_shapes(jnp.shape(origin)[:-1], jnp.shape(rays)[:-1])
-    out = jnp.full((kind.size,) + batch, _FAR, pos.dtype)
-
-    def plane(p, q, s):  # only the components along the normal matter
-        normal = quat_rotate(q, jnp.array([0.0, 0.0, 1.0], q.dtype))
-        return _plane_distance(dot(origin - p, normal), dot(rays, normal))
-
-    def sphere(p, q, s):  # rotation-invariant: no change of frame
-        return hit_sphere(origin - p, rays, s[0])
-
-    def capsule(p, q, s):
-        return hit_capsule(quat_rotate_inverse(q, origin - p), quat_rotate_inverse(q, rays), s[0], s[1])
-
-    def box(p, q, s):
-        return hit_box(quat_rotate_inverse(q, origin - p), quat_rotate_inverse(q, rays), s)
-
-    for shape_kind, test in ((PLANE, plane), (SPHERE, sphere), (CAPSULE, capsule), (BOX, box)):
+    rotation = quat_to_matrix(quat)
+    best, index = None, None
+    for shape_kind in (PLANE, SPHERE, CAPSULE, BOX):
         group = np.flatnonzero(kind == shape_kind)
-        if group.size:
-            t = jax.vmap(test)(pos[group], quat[group], size[group])
-            out = out.at[group].set(jnp.broadcast_to(t, (group.size,) + batch))
-    return out
+        if group.size == 0:
+            continue
+        test = functools.partial(_shape_distance, shape_kind, origin=origin, rays=rays)
+        t = jax.vmap(lambda s, p, r, test=test: test(s, p, r))(size[group], pos[group], rotation[group])
+        nearest, which = jnp.min(t, axis=0), jnp.asarray(group, jnp.int32)[jnp.argmin(t, axis=0)]
+        if best is None:
+            best, index = nearest, which
+        else:
+            closer = nearest < best
+            best, index = jnp.where(closer, nearest, best), jnp.where(closer, which, index)
+    # materialise: without the barrier XLA may fuse (and so recompute) the whole pass into each
+    # of its consumers
+    return jax.lax.optimization_barrier((best, index))
 
 
 class Hits(NamedTuple):
@@ -422,37 +460,65 @@ class Hits(NamedTuple):
     rays: jnp.ndarray
 
 
+class _Cast(NamedTuple):
+    """`Hits` by components, plus what shading needs: t (0 where nothing), the hit shape's index
+    (clamped to 0 where nothing) and kind, and the hit point in that shape's frame."""
+
+    hit: jnp.ndarray
+    t: jnp.ndarray
+    index: jnp.ndarray
+    kind: jnp.ndarray
+    local: Vec
+    point: Vec
+    normal: Vec
+    rays: Vec
+
+
+def _cast(model: Model, state: State, camera: Camera, supersample: int, pos, quat) -> _Cast:
+    """Primary rays against every shape: nearest hit, its point and its normal."""
+    dtype = state.pos.dtype
+    rays = _camera_rays(camera, supersample, dtype)
+    origin = _split(camera.position.astype(dtype))
+    shape = rays[0].shape
+    if model.structure.shape_kind.array.size == 0:
+        zero = jnp.zeros(shape, dtype)
+        index = jnp.zeros(shape, jnp.int32)
+        return _Cast(zero > 0.0, zero, index, index, (zero,) * 3, tuple(zero + o for o in origin), (zero,) * 3, rays)
+    nearest, index = _trace(model, pos, quat, origin, rays)
+    hit = nearest < _FAR
+    t = jnp.where(hit, nearest, 0.0)
+    # one gather of the hit shape's pose and size per pixel: (H, W, 3 + 9 + 3)
+    rotation = quat_to_matrix(quat)
+    table = jnp.concatenate([pos, rotation.reshape(-1, 9), model.shapes.size.astype(dtype)], axis=-1)
+    row = table[index]
+    p, m, size = _split(row[..., 0:3]), row[..., 3:12], _split(row[..., 12:15])
+    column = [(m[..., i], m[..., 3 + i], m[..., 6 + i]) for i in range(3)]  # R[:, i]: local axis i in world
+    # the hit point in the hit shape's frame, R^T (o - p) + t R^T d (precise near the shape)
+    offset = tuple(origin[i] - p[i] for i in range(3))
+    local = tuple(_dot3(offset, column[i]) + t * _dot3(rays, column[i]) for i in range(3))
+    kind = jnp.asarray(model.structure.shape_kind.array, jnp.int32)[index]
+    n = _local_normal(kind, size, local, frozenset(model.structure.shape_kind.array.tolist()))
+    normal = tuple(column[0][i] * n[0] + column[1][i] * n[1] + column[2][i] * n[2] for i in range(3))
+    facing = jnp.where(_dot3(normal, rays) > 0.0, -1.0, 1.0)  # seen from behind: planes, from inside
+    normal = tuple(jnp.where(hit, facing * c, 0.0) for c in normal)
+    point = tuple(origin[i] + t * rays[i] for i in range(3))
+    return jax.lax.optimization_barrier(_Cast(hit, t, index, kind, local, point, normal, rays))
+
+
 @functools.partial(jax.jit, static_argnames="supersample")
 def cast_rays(model: Model, state: State, camera: Camera, supersample: int = 1) -> Hits:
     """Intersect the camera's primary rays with every shape of `model` in `state` (one state; vmap
     for a batch). Images are (H s, W s) for supersample s. Depth images and segmentation masks
     come from here (`Hits.distance`, `Hits.shape`)."""
-    rays = camera_rays(camera, supersample).astype(state.pos.dtype)
-    origin = camera.position.astype(rays.dtype)
-    num_shapes = model.structure.shape_kind.array.size
-    if num_shapes == 0:
-        shape = jnp.full(rays.shape[:-1], -1, jnp.int32)
-        return Hits(shape >= 0, jnp.full(shape.shape, jnp.inf, rays.dtype), jnp.broadcast_to(origin, rays.shape),
-                    jnp.zeros_like(rays), shape, rays)  # fmt: skip
     pos, quat = _shape_poses(model, state)
-    t = _distances(model, pos, quat, origin, rays)
-    index = jnp.argmin(t, axis=0)
-    nearest = jnp.min(t, axis=0)
-    hit = nearest < _FAR
-    t = jnp.where(hit, nearest, 0.0)
-    # the hit point in the hit shape's frame: o_local + t d_local (precise near the shape)
-    shape_pos, shape_quat = pos[index], quat[index]
-    local = quat_rotate_inverse(shape_quat, origin - shape_pos) + t[..., None] * quat_rotate_inverse(shape_quat, rays)
-    kind = jnp.asarray(model.structure.shape_kind.array)[index]
-    normal = quat_rotate(shape_quat, _local_normal(kind, model.shapes.size.astype(rays.dtype)[index], local))
-    normal = jnp.where((dot(normal, rays) > 0.0)[..., None], -normal, normal)  # seen from behind (planes, inside)
+    cast = _cast(model, state, camera, supersample, pos, quat)
     return Hits(
-        hit=hit,
-        distance=jnp.where(hit, t, jnp.inf),
-        point=origin + t[..., None] * rays,
-        normal=jnp.where(hit[..., None], normal, 0.0),
-        shape=jnp.where(hit, index, -1),
-        rays=rays,
+        hit=cast.hit,
+        distance=jnp.where(cast.hit, cast.t, jnp.inf),
+        point=jnp.stack(cast.point, axis=-1),
+        normal=jnp.stack(cast.normal, axis=-1),
+        shape=jnp.where(cast.hit, cast.index, -1),
+        rays=jnp.stack(cast.rays, axis=-1),
     )
 
 
@@ -466,10 +532,11 @@ def body_colors(num_bodies: int) -> np.ndarray:
     return _PALETTE[np.arange(num_bodies) % len(_PALETTE)]
 
 
-def _sky(rays: jnp.ndarray) -> jnp.ndarray:
-    """Background (..., 3) for rays that hit nothing: horizon to zenith above, darker below."""
-    horizon, zenith, nadir = (jnp.asarray(c, rays.dtype) for c in (_SKY_HORIZON, _SKY_ZENITH, _SKY_NADIR))
-    z = rays[..., 2:3]
+def _sky(z: jnp.ndarray) -> jnp.ndarray:
+    """Background (..., 3) for rays with vertical component z (...,) that hit nothing: horizon to
+    zenith above, darker below."""
+    horizon, zenith, nadir = (jnp.asarray(c, z.dtype) for c in (_SKY_HORIZON, _SKY_ZENITH, _SKY_NADIR))
+    z = z[..., None]
     up = horizon + (zenith - horizon) * jnp.clip(z, 0.0, 1.0)
     down = horizon + (nadir - horizon) * jnp.clip(-4.0 * z, 0.0, 1.0)
     return jnp.where(z >= 0.0, up, down)
@@ -492,45 +559,44 @@ def _image(
         camera = camera.replace(width=width or camera.width, height=height or camera.height)
     if track is not None:
         camera = follow(camera, state, track)
-    hits = cast_rays(model, state, camera, supersample)
-    dtype = hits.rays.dtype
+    dtype = state.pos.dtype
     structure = model.structure
+    pos, quat = _shape_poses(model, state)
+    cast = _cast(model, state, camera, supersample, pos, quat)
     if colors is None:
         colors = body_colors(structure.num_bodies)
     table = jnp.concatenate([jnp.asarray(colors, dtype), jnp.asarray(WORLD_COLOR, dtype)[None]])  # row N: world
-    index = jnp.maximum(hits.shape, 0)
-    base = table[jnp.asarray(structure.shape_body.array)[index]]
+    if structure.shape_kind.array.size:
+        # one (H, W, 3) gather: gathering per channel and stacking makes XLA on CPU 20x slower
+        base = table[structure.shape_body.array][cast.index]
+    else:
+        base = jnp.zeros(cast.t.shape + (3,), dtype)
 
     # checkerboard on planes, in the plane's local x, y; faded to the mean where a square spans
     # fewer than ~6 pixels (the footprint of a pixel on the plane grows as t / |cos|)
-    kind = jnp.asarray(structure.shape_kind.array)[index]
-    on_plane = hits.hit & (kind == PLANE)
-    pos, quat = _shape_poses(model, state)
-    local = quat_rotate_inverse(quat[index], hits.point - pos[index])
     checker_size = jnp.asarray(checker_size, dtype)
-    cells = jnp.floor(local[..., 0] / checker_size) + jnp.floor(local[..., 1] / checker_size)
+    cells = jnp.floor(cast.local[0] / checker_size) + jnp.floor(cast.local[1] / checker_size)
     odd = jnp.mod(cells, 2.0)[..., None]
+    pixel_angle = 2.0 * jnp.tan(jnp.deg2rad(camera.fov.astype(dtype)) / 2) / (camera.height * supersample)
+    grazing = jnp.maximum(jnp.abs(_dot3(cast.normal, cast.rays)), 0.05)
+    footprint = cast.t * pixel_angle / grazing / checker_size
+    fade = jnp.clip((footprint - 1.0 / 6.0) * 3.0, 0.0, 1.0)[..., None]
     light_square, dark_square = (jnp.asarray(c, dtype) for c in CHECKER_COLORS)
     checker = light_square + (dark_square - light_square) * odd
-    pixel_angle = 2.0 * jnp.tan(jnp.deg2rad(camera.fov) / 2) / (camera.height * supersample)
-    distance = jnp.where(hits.hit, hits.distance, 0.0)  # finite everywhere
-    grazing = jnp.maximum(jnp.abs(dot(hits.normal, hits.rays)), 0.05)
-    footprint = distance * pixel_angle / grazing / checker_size
-    fade = jnp.clip((footprint - 1.0 / 6.0) * 3.0, 0.0, 1.0)[..., None]
     checker = checker + (0.5 * (light_square + dark_square) - checker) * fade
-    base = jnp.where(on_plane[..., None], checker, base)
+    base = jnp.where((cast.hit & (cast.kind == PLANE))[..., None], checker, base)
 
     towards_light = safe_normalize(jnp.asarray(light, dtype))[0]
-    lambert = jnp.maximum(dot(hits.normal, towards_light), 0.0)
-    if shadows:
+    lambert = jnp.maximum(_dot3(cast.normal, _split(towards_light)), 0.0)
+    if shadows and structure.shape_kind.array.size:
         # a shadow ray from just off the surface (the offset grows with distance: float precision)
-        offset = (1e-4 + 1e-5 * distance)[..., None]
-        start = hits.point + offset * hits.normal
-        blocked = jnp.min(_distances(model, pos, quat, start, towards_light), axis=0)
+        offset = 1e-4 + 1e-5 * cast.t
+        start = tuple(cast.point[i] + offset * cast.normal[i] for i in range(3))
+        blocked, _ = _trace(model, pos, quat, start, _split(towards_light))
         lambert = jnp.where(blocked < _FAR, 0.0, lambert)
     ambient = jnp.asarray(ambient, dtype)
     shade = ambient + (1.0 - ambient) * lambert
-    image = jnp.where(hits.hit[..., None], base * shade[..., None], _sky(hits.rays))
+    image = jnp.where(cast.hit[..., None], base * shade[..., None], _sky(cast.rays[2]))
     if supersample > 1:
         s = supersample
         image = image.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
