@@ -77,6 +77,7 @@ def test_rematerialised_rollout_gives_the_same_loss_and_gradient(float64):
     np.testing.assert_allclose(remat_gradient, gradient, rtol=1e-9, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_chunked_rollout_splits_the_horizon_into_chunks_and_a_remainder(float64):
     """trajopt.rollout with 7 steps in chunks of 3 (two chunks and a remainder of 1) visits the
     same states in the same order as dbd.rollout, final state included."""
@@ -98,9 +99,10 @@ def check_ik_run(result, steps):
 
 @pytest.mark.slow
 def test_ik_chain_loss_falls_100x_within_200_steps():
-    """The issue's criterion: a 3-link ball chain (9 controls) tracking a target that moves once
-    round a circle of radius 0.225 m over 30 steps of 1/30 s; Adam (lr 0.05) after clipping to
-    global norm 1, 200 steps from zero controls."""
+    """The issue's criterion: a 3-link ball chain (9 controls; drives of 300 N m/rad, 10 N m s/rad)
+    tracking a target that moves once round a circle of radius 0.225 m over 30 steps of 1/30 s;
+    Adam (lr 0.05, cosine-decayed to 0.005) after clipping to global norm 1, 200 steps from zero
+    controls."""
     task = trajopt.ik_chain_task(links=3, horizon=30)
     result = trajopt.optimise(task, steps=200, learning_rate=0.05, progress=False)
     print(
@@ -109,15 +111,6 @@ def test_ik_chain_loss_falls_100x_within_200_steps():
     )
     check_ik_run(result, 200)
     assert result.reduction >= 100.0
-
-
-def test_ik_chain_loss_falls_on_a_short_run():
-    """Fast variant: a 2-link chain over 12 steps, 40 Adam steps: the loss falls 10x."""
-    task = trajopt.ik_chain_task(links=2, horizon=12)
-    result = trajopt.optimise(task, steps=40, learning_rate=0.05, progress=False)
-    print(f"\nshort IK run: loss {result.losses[0]:.4e} -> {result.final_loss:.4e} ({result.reduction:.1f}x)")
-    check_ik_run(result, 40)
-    assert result.reduction >= 10.0
 
 
 def test_cli_help_runs():
