@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(BIN)/python examples/swinging_chain.py
+	$(BIN)/python examples/ragdoll_demo.py
 
 test: $(STAMP)
 	$(BIN)/ruff check .
