@@ -200,6 +200,10 @@ def test_batched_render_equals_per_state_render(ground):
     assert not np.array_equal(each[0], each[1])  # the states differ, so do the pictures
     rolled = np.asarray(R.render_rollout(ground, states, camera, batch_size=2))  # 3 frames in batches of 2
     np.testing.assert_array_equal(rolled, each)
+    # without a camera the whole trajectory is framed once: every frame from the same viewpoint
+    framed = R.default_camera(ground, states, width=W, height=H)
+    rolled = np.asarray(R.render_rollout(ground, states, width=W, height=H, batch_size=2))
+    np.testing.assert_array_equal(rolled[2], R.render(ground, jax.tree.map(lambda x: x[2], states), framed))
 
 
 @pytest.fixture(scope="module")
@@ -237,6 +241,13 @@ def test_camera_on_the_plane_with_rays_parallel_to_it_gives_finite_pictures(para
     picture = R.render_float(model, state, down)
     assert bool(jnp.all(jnp.isfinite(picture)))
     assert float(picture.max() - picture.min()) > 0.1  # rays spread over the checkerboard, not one point
+    # a camera inside the box sees its walls from within
+    inside = R.Camera(position=(0.0, 4.0, 0.1), look_at=(1.0, 4.0, 0.1), fov=50.0, width=33, height=25)
+    assert bool(jnp.all(jnp.isfinite(R.render_float(model, state, inside))))
+    hits = R.cast_rays(model, state, inside)
+    assert bool(jnp.all(hits.hit)) and int(hits.shape[12, 16]) == 1
+    np.testing.assert_allclose(float(hits.distance[12, 16]), 0.3, rtol=1e-6)
+    np.testing.assert_allclose(hits.normal[12, 16], [-1.0, 0.0, 0.0], atol=1e-6)  # facing the camera
 
 
 @pytest.mark.slow
