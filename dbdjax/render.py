@@ -86,7 +86,8 @@ _SKY_HORIZON = np.array([0.88, 0.91, 0.95])
 _SKY_ZENITH = np.array([0.45, 0.62, 0.88])
 _SKY_NADIR = np.array([0.35, 0.36, 0.40])
 DEFAULT_LIGHT = (-0.35, -0.55, 1.0)
-"""Direction toward the light (world, normalised on use): high, behind-left of the default view."""
+"""Direction toward the light (world, normalised on use): high up, on the left of the default
+views and on the camera's side, so shadows fall behind the bodies and to the right."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -95,7 +96,7 @@ DEFAULT_LIGHT = (-0.35, -0.55, 1.0)
 
 
 @jax.tree_util.register_pytree_node_class
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera. A pytree: position, look_at, up and fov are leaves (so a camera can be
     computed inside jit, follow a body, or be batched); width and height are static.
@@ -267,9 +268,10 @@ def camera_rays(camera: Camera, supersample: int = 1) -> jnp.ndarray:
 
 
 def project(camera: Camera, points: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Pixel coordinates of world points (..., 3): ((..., 2) (column, row), continuous, pixel
-    centres at integers + 0.5 ... i.e. pixel (i, j) covers [j, j + 1) x [i, i + 1); (...,) depth
-    along the view axis, m, negative behind the camera)."""
+    """Where world points (..., 3) appear in the picture: ((..., 2) continuous (column, row) image
+    coordinates, in which pixel [i, j] covers columns [j, j + 1) and rows [i, i + 1) (its centre
+    is (j + 0.5, i + 0.5)); (...,) depth along the view axis, m, negative behind the camera, where
+    the coordinates mean nothing)."""
     forward, right, up = _camera_frame(camera)
     offset = points - camera.position
     depth = dot(offset, forward)

@@ -100,6 +100,8 @@ def test_sphere_shows_at_its_projected_pixel_in_its_body_colour(two_bodies):
     empty = np.asarray(draw(_moved(state, 0, (0.0, -50.0, 0.0))))  # the sphere behind the camera
     row, column = _pixel((0.0, -4.0, 0.5), (0.0, 0.0, 0.5), 60.0, centre)
     assert (row, column) != (H // 2, W // 2)  # off-centre, so a wrong projection would miss it
+    where, depth = R.project(camera, jnp.asarray(centre))
+    assert (int(np.floor(where[1])), int(np.floor(where[0]))) == (row, column) and float(depth) > 0.0
     assert np.abs(image[row, column].astype(int) - empty[row, column]).sum() > 30  # not the background
     shade = _shade(image[row, column], RED)
     # one shading factor for all three channels (up to rounding), between ambient and full light
@@ -183,6 +185,17 @@ def test_shadow_falls_below_a_body_along_the_light(ground):
     np.testing.assert_allclose(shaded[row, column] / lit[row, column], 0.35, atol=1.0 / lit[row, column].min())
     row, column = _pixel(eye, target, 45.0, (1.2, 0.0, 0.0))  # open ground
     np.testing.assert_array_equal(shaded[row, column], lit[row, column])
+
+
+def test_supersampling_averages_the_picture_of_a_finer_camera(ground):
+    camera = R.camera_looking_at((0.0, 0.0, 0.5), 4.0, fov=45.0, width=W // 2, height=H // 2)
+    state = dbd.init(ground)
+    smooth = np.asarray(R.render_float(ground, state, camera, supersample=2))
+    fine = np.asarray(R.render_float(ground, state, camera.replace(width=W, height=H)))
+    assert smooth.shape == (H // 2, W // 2, 3)
+    blocks = fine.reshape(H // 2, 2, W // 2, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(smooth, blocks, atol=1e-6)
+    assert np.abs(fine[::2, ::2] - fine[1::2, 1::2]).max() > 0.1  # edges inside pixels: the mean matters
 
 
 def test_batched_render_equals_per_state_render(ground):
