@@ -18,7 +18,7 @@ from gymnasium.vector import AutoresetMode
 
 import dbdjax as dbd
 from dbdjax import host_math, ik, math
-from dbdjax.envs.core import DbdFuncEnv, EnvState, hinge_angles
+from dbdjax.envs.core import DbdFuncEnv, EnvState, joint_coordinates
 from dbdjax.envs.wrappers import DbdEnv, DbdVectorEnv
 
 
@@ -60,12 +60,19 @@ class IKChainReach(DbdFuncEnv):
     the episode (the policy should hold the goal). Termination: only a non-finite action or
     physics state (info flags). Truncation: `max_episode_steps` (100 when registered, 3.3 s).
 
-    Sensitivity: at this solver budget one physics step amplifies rounding: moving one link by
-    1e-9 m changes the angular velocities after a step by up to tens of rad/s (float64 too; 1e-7
-    rad/s without drives, growing about 1.75x per Gauss-Seidel iteration with the drive rows).
-    Trajectories are reproducible for one compiled program and seed, but two differently compiled
-    programs (another XLA optimisation level, eager vs jit) drift apart within a step, and
-    gradients through more than a few steps mostly measure that amplification.
+    `joint="ball"`: unlimited ball joints instead (3 drive targets each, a rotation vector in the
+    parent's frame, each component a * joint_range; action and angles (3 num_links,)).
+
+    Sensitivity (an engine issue, reported): with driven hinges one physics step amplifies
+    rounding. Moving one link by 1e-9 m changes the angular velocities after a step by up to tens
+    of rad/s at the default 4 substeps x 16 iterations (float64 too). It grows with the iterations
+    (5-hinge chain, 1 substep, float64: 2.6e-6 rad/s at 8 iterations, 4e-5 at 32 with damping 30,
+    3.4 at 32 without damping), is 1e-7 without drives, and is absent with driven ball joints
+    (7e-8 at 32 iterations): the hinge's axle-alignment row takes its direction from a normalised
+    cross product of nearly parallel axes. So trajectories are reproducible for one compiled
+    program and seed, two differently compiled programs (another XLA optimisation level, eager vs
+    jit) drift apart within a step, and the gradient of a hinge chain's return over 8 steps
+    overflows float32; the ball-joint chain's is finite.
 
     Expert baseline (`evaluate_expert`, `benchmarks/ik_chain_expert.py`): the DBD IK solution
     (32 updates from the measured angles, every step) as the action. Measured on this repository's
@@ -78,6 +85,7 @@ class IKChainReach(DbdFuncEnv):
     def __init__(
         self,
         num_links: int = 5,
+        joint: str = "hinge",
         link_length: float = 0.3,
         link_mass: float = 1.0,
         link_radius: float = 0.04,
@@ -98,7 +106,7 @@ class IKChainReach(DbdFuncEnv):
         max_episode_steps: int | None = None,
     ):
         config = dict(
-            num_links=num_links, link_length=link_length, link_mass=link_mass, link_radius=link_radius,
+            num_links=num_links, joint=joint, link_length=link_length, link_mass=link_mass, link_radius=link_radius,
             joint_range=joint_range, drive_stiffness=drive_stiffness, drive_damping=drive_damping,
             max_torque=max_torque, gravity=gravity, start_range=start_range, goal_range=goal_range,
             success_distance=success_distance, progress_weight=progress_weight, effort_weight=effort_weight,
@@ -107,6 +115,8 @@ class IKChainReach(DbdFuncEnv):
         )  # fmt: skip
         if not isinstance(num_links, (int, np.integer)) or num_links < 1:
             raise ValueError(f"IKChainReach: num_links must be a positive integer, got {num_links!r}")
+        if joint not in ("hinge", "ball"):
+            raise ValueError(f"IKChainReach: joint must be 'hinge' or 'ball', got {joint!r}")
         if not 0.0 < joint_range <= np.pi:
             raise ValueError(f"IKChainReach: joint_range must be in (0, pi], got {joint_range!r}")
         for what, value in (("start_range", start_range), ("goal_range", goal_range)):
@@ -129,14 +139,17 @@ class IKChainReach(DbdFuncEnv):
                                 contype=0, conaffinity=0)  # fmt: skip
             axis = (0.0, 0.0, 1.0) if k % 2 == 0 else (0.0, 1.0, 0.0)
             parent = dbd.WORLD if k == 0 else bodies[-1]
-            joint = builder.add_hinge_joint(
-                parent, body, anchor=(k * link_length, 0.0, 0.0), axis=axis,
-                limits=(-joint_range, joint_range), name=f"hinge {k}",
-            )  # fmt: skip
-            builder.add_drive(joint, drive_stiffness, drive_damping, max_torque)
+            anchor = (k * link_length, 0.0, 0.0)
+            if joint == "hinge":
+                index = builder.add_hinge_joint(parent, body, anchor=anchor, axis=axis,
+                                                limits=(-joint_range, joint_range), name=f"hinge {k}")  # fmt: skip
+            else:  # unlimited (the IK chain takes no cone or twist limits); the targets are bounded
+                index = builder.add_ball_joint(parent, body, anchor=anchor, name=f"ball {k}")
+            builder.add_drive(index, drive_stiffness, drive_damping, max_torque)
             bodies.append(body)
-            joints.append(joint)
-        builder.set_control_range(slice(0, n), -joint_range, joint_range)
+            joints.append(index)
+        dofs = n if joint == "hinge" else 3 * n
+        builder.set_control_range(slice(0, dofs), -joint_range, joint_range)
         model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations)
         # For pictures only: the same chain and a free marker body whose sphere shows the goal.
         marker = builder.add_body(pos=(0.0, 0.0, 0.0), mass=1.0, inertia=(1.0, 1.0, 1.0), name="goal")
@@ -144,6 +157,8 @@ class IKChainReach(DbdFuncEnv):
         self.render_model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations)
 
         self.num_links = n
+        self.joint = joint
+        self.num_dofs = dofs
         self.joints = tuple(joints)
         self.bodies = tuple(bodies)
         self.link_length = float(link_length)
@@ -159,8 +174,8 @@ class IKChainReach(DbdFuncEnv):
         self.chain = ik.Chain.from_model(model, bodies[-1], tip=tuple(self.tip_local))
         super().__init__(
             model,
-            control_low=np.full(n, -joint_range),
-            control_high=np.full(n, joint_range),
+            control_low=np.full(dofs, -joint_range),
+            control_high=np.full(dofs, joint_range),
             frame_skip=frame_skip,
             max_episode_steps=max_episode_steps,
             config=config,
@@ -168,7 +183,7 @@ class IKChainReach(DbdFuncEnv):
 
     # ------------------------------------------------------------------------ kinematics
     def chain_state(self, angles: jnp.ndarray) -> dbd.State:
-        """The physics State with the hinges at `angles` (num_links,) rad, at rest."""
+        """The physics State with the joints at `angles` (num_dofs,) rad, at rest."""
         chain = self.chain.astype(self.dtype)
         poses = ik.forward_kinematics(chain, jnp.asarray(angles, self.dtype))
         index = np.asarray(self.bodies)
@@ -184,8 +199,8 @@ class IKChainReach(DbdFuncEnv):
         return physics.pos[last] + math.quat_rotate(physics.quat[last], jnp.asarray(self.tip_local, physics.pos.dtype))
 
     def angles(self, physics: dbd.State) -> tuple[jnp.ndarray, jnp.ndarray]:
-        """Hinge angles (rad) and rates (rad/s), (num_links,) each."""
-        return hinge_angles(self.model, physics, self.joints)
+        """Joint angles (rad) and rates (rad/s) in the drive-target layout, (num_dofs,) each."""
+        return joint_coordinates(self.model, physics, self.joints, (self.joint,) * self.num_links)
 
     def distance(self, state: EnvState) -> jnp.ndarray:
         """() m, tip-goal distance."""
@@ -210,8 +225,8 @@ class IKChainReach(DbdFuncEnv):
     def task_initial(self, key: jnp.ndarray):
         start_key, goal_key = jax.random.split(key)
         limit = self.joint_range
-        start = jax.random.uniform(start_key, (self.num_links,), self.dtype, -1.0, 1.0) * self.start_range * limit
-        goal_angles = jax.random.uniform(goal_key, (self.num_links,), self.dtype, -1.0, 1.0) * self.goal_range * limit
+        start = jax.random.uniform(start_key, (self.num_dofs,), self.dtype, -1.0, 1.0) * self.start_range * limit
+        goal_angles = jax.random.uniform(goal_key, (self.num_dofs,), self.dtype, -1.0, 1.0) * self.goal_range * limit
         goal = ik.end_effector(self.chain.astype(self.dtype), goal_angles)
         return self.chain_state(start), ReachTask(goal=goal)
 
