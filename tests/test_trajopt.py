@@ -128,11 +128,11 @@ def test_cli_help_runs():
 
 @pytest.mark.slow
 def test_cli_writes_result_metrics_and_plot_and_keeps_controls_in_bounds(tmp_path):
-    """A 1-link chain, 4 steps at a learning rate so large that the control bounds (+-1.8 rad per
+    """A 1-link chain, 4 steps at a learning rate (5) so large that the control bounds (+-1.8 rad per
     entry) are reached: the controls are projected onto them."""
     steps = 4
     result = trajopt.main(
-        ["--task", "ik_chain", "--links", "1", "--horizon", "6", "--steps", str(steps), "--lr", "1.0",
+        ["--task", "ik_chain", "--links", "1", "--horizon", "6", "--steps", str(steps), "--lr", "5.0",
          "--remat-chunk", "4", "--out", str(tmp_path), "--no-progress"]
     )  # fmt: skip
     assert np.all(np.abs(result.controls) <= 1.8) and np.any(np.abs(result.controls) == np.float32(1.8))

@@ -451,7 +451,7 @@ def make_update(task: Task, transform: optax.GradientTransformation, remat_chunk
         new_controls = optax.apply_updates(controls, updates)
         if low is not None or high is not None:
             new_controls = jnp.clip(new_controls, low, high)
-        return new_controls, opt_state, value, optax.global_norm(gradient), trajectory
+        return new_controls, opt_state, value, jnp.sqrt(jnp.sum(gradient * gradient)), trajectory
 
     return update
 
