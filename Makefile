@@ -29,8 +29,10 @@ test-all: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -v --durations=15
 
+# Quick by default; `make bench FULL=1` for batches up to 4096 and 1000-step gradients.
 bench: $(STAMP)
 	$(BIN)/python benchmarks/chain_throughput.py
+	$(BIN)/python benchmarks/brax_comparison.py $(if $(FULL),--full,)
 
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
