@@ -65,7 +65,7 @@ def main() -> None:
     states = jax.tree.map(lambda x: x[::every], trajectory)
     frames_count = states.pos.shape[0]
     camera = R.camera_looking_at(
-        (-0.1, 0.15, 0.45), distance=3.6, azimuth=-70.0, elevation=22.0, width=args.width, height=args.height
+        (-0.2, 0.1, 0.65), distance=3.3, azimuth=-72.0, elevation=14.0, width=args.width, height=args.height
     )
 
     draw = jax.jit(lambda s: R.render(model, s, camera))
@@ -89,6 +89,7 @@ def main() -> None:
     gif = save_video(frames, out / "render_demo.gif", fps=args.frames_per_second)
     sheet = np.concatenate([frames[i] for i in np.linspace(0, frames_count - 1, 6).astype(int)], axis=1)
     png = save_image(sheet, out / "render_demo.png")
+    save_image(frames[frames_count // 2], out / "render_demo_frame.png")
     shapes = model.structure.shape_kind.array.size
     print(f"{model.num_bodies} bodies, {shapes} shapes, {steps} steps; {frames_count} frames of "
           f"{args.width}x{args.height} on {jax.devices()[0].platform}")  # fmt: skip

@@ -100,6 +100,8 @@ def test_sphere_shows_at_its_projected_pixel_in_its_body_colour(two_bodies):
     empty = np.asarray(draw(_moved(state, 0, (0.0, -50.0, 0.0))))  # the sphere behind the camera
     row, column = _pixel((0.0, -4.0, 0.5), (0.0, 0.0, 0.5), 60.0, centre)
     assert (row, column) != (H // 2, W // 2)  # off-centre, so a wrong projection would miss it
+    where, depth = R.project(camera, jnp.asarray(centre))
+    assert (int(np.floor(where[1])), int(np.floor(where[0]))) == (row, column) and float(depth) > 0.0
     assert np.abs(image[row, column].astype(int) - empty[row, column]).sum() > 30  # not the background
     shade = _shade(image[row, column], RED)
     # one shading factor for all three channels (up to rounding), between ambient and full light
@@ -185,6 +187,17 @@ def test_shadow_falls_below_a_body_along_the_light(ground):
     np.testing.assert_array_equal(shaded[row, column], lit[row, column])
 
 
+def test_supersampling_averages_the_picture_of_a_finer_camera(ground):
+    camera = R.camera_looking_at((0.0, 0.0, 0.5), 4.0, fov=45.0, width=W // 2, height=H // 2)
+    state = dbd.init(ground)
+    smooth = np.asarray(R.render_float(ground, state, camera, supersample=2))
+    fine = np.asarray(R.render_float(ground, state, camera.replace(width=W, height=H)))
+    assert smooth.shape == (H // 2, W // 2, 3)
+    blocks = fine.reshape(H // 2, 2, W // 2, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(smooth, blocks, atol=1e-6)
+    assert np.abs(fine[::2, ::2] - fine[1::2, 1::2]).max() > 0.1  # edges inside pixels: the mean matters
+
+
 def test_batched_render_equals_per_state_render(ground):
     camera = R.camera_looking_at((0.0, 0.0, 0.5), 4.0, fov=45.0, width=W, height=H)
     state = dbd.init(ground)
@@ -200,6 +213,10 @@ def test_batched_render_equals_per_state_render(ground):
     assert not np.array_equal(each[0], each[1])  # the states differ, so do the pictures
     rolled = np.asarray(R.render_rollout(ground, states, camera, batch_size=2))  # 3 frames in batches of 2
     np.testing.assert_array_equal(rolled, each)
+    # without a camera the whole trajectory is framed once: every frame from the same viewpoint
+    framed = R.default_camera(ground, states, width=W, height=H)
+    rolled = np.asarray(R.render_rollout(ground, states, width=W, height=H, batch_size=2))
+    np.testing.assert_array_equal(rolled[2], R.render(ground, jax.tree.map(lambda x: x[2], states), framed))
 
 
 @pytest.fixture(scope="module")
@@ -237,6 +254,13 @@ def test_camera_on_the_plane_with_rays_parallel_to_it_gives_finite_pictures(para
     picture = R.render_float(model, state, down)
     assert bool(jnp.all(jnp.isfinite(picture)))
     assert float(picture.max() - picture.min()) > 0.1  # rays spread over the checkerboard, not one point
+    # a camera inside the box sees its walls from within
+    inside = R.Camera(position=(0.0, 4.0, 0.1), look_at=(1.0, 4.0, 0.1), fov=50.0, width=33, height=25)
+    assert bool(jnp.all(jnp.isfinite(R.render_float(model, state, inside))))
+    hits = R.cast_rays(model, state, inside)
+    assert bool(jnp.all(hits.hit)) and int(hits.shape[12, 16]) == 1
+    np.testing.assert_allclose(float(hits.distance[12, 16]), 0.3, rtol=1e-6)
+    np.testing.assert_allclose(hits.normal[12, 16], [-1.0, 0.0, 0.0], atol=1e-6)  # facing the camera
 
 
 @pytest.mark.slow
