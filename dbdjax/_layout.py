@@ -37,7 +37,8 @@ def map_source_folders() -> None:
     root = Path(__file__).resolve().parent.parent
     if not (root / "pyproject.toml").is_file():
         return
-    folders = {name: root / folder for name, folder in SOURCE_FOLDERS.items() if (root / folder / "__init__.py").is_file()}
+    folders = {name: root / folder for name, folder in SOURCE_FOLDERS.items()}
+    folders = {name: folder for name, folder in folders.items() if (folder / "__init__.py").is_file()}
     if not folders or any(isinstance(finder, _SourceFolderFinder) for finder in sys.meta_path):
         return
     # First in line: an editable install of another checkout would otherwise map these names to

@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from dbdjax.training import checkpoint
 
 import dbdjax as dbd
+from dbdjax.training import checkpoint
 
 
 def example_tree():

@@ -11,9 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from dbdjax.training import checkpoint, trajopt
 
 import dbdjax as dbd
+from dbdjax.training import checkpoint, trajopt
 
 ROOT = Path(__file__).resolve().parent.parent
 
