@@ -56,7 +56,7 @@ import numpy as np
 from dbdjax import host_math, shapes
 from dbdjax import math as dmath
 from dbdjax.builder import ModelBuilder
-from dbdjax.collision import BOX, CAPSULE
+from dbdjax.collision import BOX, CAPSULE, SPHERE
 from dbdjax.model import Model, State
 
 REFERENCE_HEIGHT = 1.8  # m: the table below is for a doll of this height; `height` scales it
@@ -69,25 +69,22 @@ FRICTION = 0.9  # doll shapes and the floor
 # Defaults of `finalize` that the standing tests and benchmarks/ragdoll_step.py use.
 DT = 1.0 / 60.0
 SUBSTEPS = 2
-ITERATIONS = 6
+ITERATIONS = 8
 ASSET = Path(__file__).parent / "assets" / "ragdoll.xml"
 
 
 @dataclasses.dataclass(frozen=True)
 class _Part:
-    """One body at the reference height, feet at the origin, standing, facing +x.
-
-    A capsule covers the segment start..end with its caps (so `start` and `end` are its extreme
-    points); a box is given by its centre and half extents. mass: fraction of the total."""
+    """One body at the reference height, feet at the origin, standing, facing +x: a capsule
+    covering the segment start..end with its caps (start and end are its extreme points) of
+    `radius` (m). mass: its fraction of the total."""
 
     name: str
     parent: str | None
     mass: float
-    kind: int
-    radius: float = 0.0
-    start: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    end: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    half_extents: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radius: float
+    start: tuple[float, float, float]
+    end: tuple[float, float, float]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,26 +110,26 @@ def _sided(side: str, point: tuple[float, float, float]) -> tuple[float, float, 
 def _parts() -> tuple[_Part, ...]:
     """The bodies in depth-first order (the order of the MJCF tree, hence of `load_mjcf`)."""
     parts = [
-        _Part("pelvis", None, 0.19, CAPSULE, 0.10, (0.0, -0.17, 0.98), (0.0, 0.17, 0.98)),
-        _Part("torso", "pelvis", 0.29, CAPSULE, 0.13, (0.0, 0.0, 1.05), (0.0, 0.0, 1.52)),
-        _Part("head", "torso", 0.07, CAPSULE, 0.10, (0.0, 0.0, 1.54), (0.0, 0.0, 1.80)),
+        _Part("pelvis", None, 0.19, 0.09, (0.0, -0.15, 0.98), (0.0, 0.15, 0.98)),
+        _Part("torso", "pelvis", 0.29, 0.13, (0.0, 0.0, 1.05), (0.0, 0.0, 1.52)),
+        _Part("head", "torso", 0.07, 0.10, (0.0, 0.0, 1.54), (0.0, 0.0, 1.80)),
     ]
     for s in "lr":
         parts += [
-            _Part(f"upper_arm_{s}", "torso", 0.035, CAPSULE, 0.045, _sided(s, (0, 0.2, 1.45)),
+            _Part(f"upper_arm_{s}", "torso", 0.035, 0.045, _sided(s, (0, 0.2, 1.45)),
                   _sided(s, (0, 0.2, 1.16))),
-            _Part(f"lower_arm_{s}", f"upper_arm_{s}", 0.02, CAPSULE, 0.04, _sided(s, (0, 0.2, 1.16)),
+            _Part(f"lower_arm_{s}", f"upper_arm_{s}", 0.02, 0.04, _sided(s, (0, 0.2, 1.16)),
                   _sided(s, (0, 0.2, 0.90))),
-            _Part(f"hand_{s}", f"lower_arm_{s}", 0.008, CAPSULE, 0.035, _sided(s, (0, 0.2, 0.90)),
+            _Part(f"hand_{s}", f"lower_arm_{s}", 0.008, 0.035, _sided(s, (0, 0.2, 0.90)),
                   _sided(s, (0, 0.2, 0.72))),
         ]  # fmt: skip
     for s in "lr":
         parts += [
-            _Part(f"thigh_{s}", "pelvis", 0.10, CAPSULE, 0.07, _sided(s, (0, 0.09, 0.92)), _sided(s, (0, 0.09, 0.50))),
-            _Part(f"shin_{s}", f"thigh_{s}", 0.045, CAPSULE, 0.05, _sided(s, (0, 0.09, 0.50)),
+            _Part(f"thigh_{s}", "pelvis", 0.10, 0.07, _sided(s, (0, 0.09, 0.92)), _sided(s, (0, 0.09, 0.50))),
+            _Part(f"shin_{s}", f"thigh_{s}", 0.045, 0.05, _sided(s, (0, 0.09, 0.50)),
                   _sided(s, (0, 0.09, 0.085))),
-            _Part(f"foot_{s}", f"shin_{s}", 0.017, BOX, start=_sided(s, (0.05, 0.09, 0.03)),
-                  half_extents=(0.11, 0.045, 0.03)),
+            _Part(f"foot_{s}", f"shin_{s}", 0.017, 0.04, _sided(s, (-0.06, 0.09, 0.04)),
+                  _sided(s, (0.16, 0.09, 0.04))),
         ]  # fmt: skip
     return tuple(parts)
 
@@ -214,25 +211,30 @@ def _capsule_axis(part: _Part) -> tuple[np.ndarray, float, np.ndarray]:
 
 
 def _shape_inertia(part: _Part, scale: float, mass: float) -> np.ndarray:
-    """Principal moments (kg m^2) in world axes of a part's shape at `mass`, `scale` x reference size."""
-    if part.kind == CAPSULE:
-        _, half, axis = _capsule_axis(part)
-        volume, per_density = shapes.volume_and_inertia(CAPSULE, np.array([part.radius, half, 0.0]) * scale)
-        rotation = host_math.to_matrix(host_math.z_to(axis))
-    else:
-        volume, per_density = shapes.volume_and_inertia(BOX, np.asarray(part.half_extents) * scale)
-        rotation = np.eye(3)
+    """Principal moments (kg m^2) in world axes of a part's capsule at `mass`, `scale` x reference size."""
+    _, half, axis = _capsule_axis(part)
+    volume, per_density = shapes.volume_and_inertia(CAPSULE, np.array([part.radius, half, 0.0]) * scale)
+    rotation = host_math.to_matrix(host_math.z_to(axis))
     tensor = rotation @ np.diag(per_density * mass / volume) @ rotation.T
-    return np.diag(tensor).copy()  # the parts are aligned with the world axes
+    return np.diag(tensor).copy()  # the capsules lie along the world axes: the tensor is diagonal
 
 
 def _stabilised_inertia(moments: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Raise every principal moment of a parent to at least the sum of its children's largest.
+    """Raise small principal moments so that the Gauss-Seidel sweeps converge (module docstring).
 
-    moments: body name -> (3,) principal moments. Children are handled before their parents (the
-    feet and hands first), so a raised child raises its parent in turn. Raising the smallest
-    moments keeps the triangle inequality (the largest moment is untouched or all become equal)."""
+    moments: body name -> (3,) principal moments (kg m^2). Two rules, from the ends of the tree in:
+    1. the feet carry the standing doll: in that load path a foot is the parent of its shin, so
+       its moments are raised to the shin's largest (a foot at its own inertia is turned by the
+       ankle drive and joint far more than the shin, and the contact under it turns it back:
+       the two fight, the sweeps do not converge and the feet creep over the floor);
+    2. every principal moment of a parent is at least the sum of its children's largest, from
+       the hands and feet up to the pelvis, so a raised child raises its parent in turn.
+    Raising the smallest moments keeps the triangle inequality (the largest is untouched or all
+    become equal)."""
     result = {name: np.array(value, dtype=np.float64) for name, value in moments.items()}
+    for part in PARTS:
+        if part.name.startswith("foot"):
+            result[part.name] = np.maximum(result[part.name], float(np.max(result[part.parent])))
     for part in reversed(PARTS):  # depth-first order reversed: every child before its parent
         children = [p.name for p in PARTS if p.parent == part.name]
         if children:
@@ -264,6 +266,34 @@ def _drive_parameter(value, default: float, joint: _JointSpec, what: str) -> flo
     return base * joint.strength
 
 
+def _drives(height: float, mass: float, drive_stiffness, drive_damping, max_torque) -> dict[str, tuple]:
+    """(stiffness, damping, max_torque) of every joint's drive, by name (see `build`)."""
+    strength = (mass / REFERENCE_MASS) * (height / REFERENCE_HEIGHT)
+    return {
+        spec.name: (
+            _drive_parameter(drive_stiffness, 10000.0 * strength, spec, "drive_stiffness"),
+            _drive_parameter(drive_damping, 500.0 * strength, spec, "drive_damping"),
+            _drive_parameter(max_torque, 600.0 * strength, spec, "max_torque"),
+        )
+        for spec in JOINTS
+    }
+
+
+def _check_size(height: float, mass: float, what: str) -> None:
+    if not (math.isfinite(height) and height > 0.0):
+        raise ValueError(f"{what}: height must be positive, got {height}")
+    if not (math.isfinite(mass) and mass > 0.0):
+        raise ValueError(f"{what}: mass must be positive, got {mass}")
+
+
+def _ranges(spec: _JointSpec) -> list[tuple[float, float]]:
+    """The control range of each of a joint's drive entries (from its limits)."""
+    if spec.kind == "ball":
+        cone, twist = spec.limits
+        return [(-cone, cone), (-cone, cone), (-twist, twist)]
+    return [spec.limits]
+
+
 def build(
     builder: ModelBuilder | None = None,
     *,
@@ -283,24 +313,22 @@ def build(
     drive_stiffness (N m/rad), drive_damping (N m s/rad), max_torque (N m): a number is the value
       for the strongest joints (waist, hips, knees); the others get a share (ankles 0.8,
       shoulders 0.3, neck and elbows 0.15, wrists 0.03). A Mapping gives values per joint name
-      (joints left out keep their default share). None: 3000, 300 and 400 scaled by
-      (mass / 70) (height / 1.8), which hold the build pose standing at dt = 1/60.
+      (joints left out keep their default share). None: 10000, 500 and 600 scaled by
+      (mass / 70) (height / 1.8), which hold the build pose standing at dt = 1/60 with SUBSTEPS
+      and ITERATIONS.
     pos: (x, y) where the feet stand and z the ground height. floor: add a static plane at z =
       pos[2] (contype 1, friction `friction`). self_collision: let the doll's own non-jointed
       bodies touch (91 more contact pairs; see the module docstring).
     Returns (builder, Ragdoll). Finalize the builder yourself, e.g. with DT, SUBSTEPS, ITERATIONS.
     """
     builder = ModelBuilder() if builder is None else builder
-    if not (math.isfinite(height) and height > 0.0):
-        raise ValueError(f"ragdoll.build: height must be positive, got {height}")
-    if not (math.isfinite(mass) and mass > 0.0):
-        raise ValueError(f"ragdoll.build: mass must be positive, got {mass}")
+    _check_size(height, mass, "ragdoll.build")
     origin = np.asarray(pos, dtype=np.float64)
     if origin.shape != (3,) or not np.all(np.isfinite(origin)):
         raise ValueError(f"ragdoll.build: pos must be 3 finite numbers, got {pos!r}")
     scale = height / REFERENCE_HEIGHT
-    strength = (mass / REFERENCE_MASS) * scale
     masses, moments = mass_properties(height, mass)
+    drives = _drives(height, mass, drive_stiffness, drive_damping, max_torque)
     material = dict(friction=friction, contype=DOLL_CONTYPE,
                     conaffinity=SELF_CONAFFINITY if self_collision else DOLL_CONAFFINITY)  # fmt: skip
 
@@ -309,20 +337,13 @@ def build(
 
     bodies, shape_of = {}, {}
     for part in PARTS:
-        if part.kind == CAPSULE:
-            centre, half, axis = _capsule_axis(part)
-            body = builder.add_body(pos=place(centre), mass=masses[part.name], inertia=moments[part.name],
-                                    name=part.name)  # fmt: skip
-            shape = builder.add_capsule(body, radius=scale * part.radius, half_length=scale * half,
-                                        quat=host_math.z_to(axis), name=part.name, **material)  # fmt: skip
-        else:
-            body = builder.add_body(pos=place(part.start), mass=masses[part.name], inertia=moments[part.name],
-                                    name=part.name)  # fmt: skip
-            shape = builder.add_box(body, half_extents=scale * np.asarray(part.half_extents), name=part.name,
-                                    **material)  # fmt: skip
-        bodies[part.name], shape_of[part.name] = body, shape
+        centre, half, axis = _capsule_axis(part)
+        body = builder.add_body(pos=place(centre), mass=masses[part.name], inertia=moments[part.name], name=part.name)
+        shape_of[part.name] = builder.add_capsule(body, radius=scale * part.radius, half_length=scale * half,
+                                                  quat=host_math.z_to(axis), name=part.name, **material)  # fmt: skip
+        bodies[part.name] = body
 
-    joints, kinds, controls, low, high = {}, {}, {}, [], []
+    joints, kinds, controls, ranges = {}, {}, {}, []
     first = None
     for spec in JOINTS:
         a, b, anchor = bodies[spec.parent], bodies[spec.child], place(spec.anchor)
@@ -330,43 +351,34 @@ def build(
             cone, twist = spec.limits
             index = builder.add_ball_joint(a, b, anchor, cone_limit=cone, twist_limits=(-twist, twist),
                                            twist_axis=spec.axis, name=spec.name)  # fmt: skip
-            low += [-cone, -cone, -twist]
-            high += [cone, cone, twist]
         else:
             index = builder.add_hinge_joint(a, b, anchor, axis=spec.axis, limits=spec.limits, name=spec.name)
-            low.append(spec.limits[0])
-            high.append(spec.limits[1])
-        entries = builder.add_drive(
-            index,
-            stiffness=_drive_parameter(drive_stiffness, 3000.0 * strength, spec, "drive_stiffness"),
-            damping=_drive_parameter(drive_damping, 300.0 * strength, spec, "drive_damping"),
-            max_torque=_drive_parameter(max_torque, 400.0 * strength, spec, "max_torque"),
-            name=spec.name,
-        )
+        stiffness, damping, torque = drives[spec.name]
+        entries = builder.add_drive(index, stiffness=stiffness, damping=damping, max_torque=torque, name=spec.name)
         first = entries.start if first is None else first
         controls[spec.name] = slice(entries.start - first, entries.stop - first)
         joints[spec.name], kinds[spec.name] = index, spec.kind
-    num_controls = len(low)
-    control_slice = slice(first, first + num_controls)
-    for entry, (lo, hi) in enumerate(zip(low, high, strict=True)):
-        builder.set_control_range(first + entry, lo, hi)
+        for entry, (low, high) in zip(range(entries.start, entries.stop), _ranges(spec), strict=True):
+            builder.set_control_range(entry, low, high)
+        ranges += _ranges(spec)
+    num_controls = len(ranges)
 
     floor_shape = None
     if floor:
         floor_shape = builder.add_plane(normal=(0.0, 0.0, 1.0), offset=float(origin[2]), friction=friction,
                                         name="floor")  # fmt: skip
-    pelvis = next(p for p in PARTS if p.name == "pelvis")
+    pelvis = PARTS[0]
     doll = Ragdoll(
         bodies=bodies,
         joints=joints,
         joint_kinds=kinds,
         shapes=shape_of,
         controls=controls,
-        control_slice=control_slice,
+        control_slice=slice(first, first + num_controls),
         num_controls=num_controls,
-        control_low=np.asarray(low),
-        control_high=np.asarray(high),
-        rest_height=float(place(_capsule_axis(pelvis)[0])[2] - origin[2]),
+        control_low=np.asarray([low for low, _ in ranges]),
+        control_high=np.asarray([high for _, high in ranges]),
+        rest_height=float(scale * _capsule_axis(pelvis)[0][2]),
         height=float(height),
         mass=float(mass),
         floor=floor_shape,
@@ -418,13 +430,92 @@ def lowest_point(model: Model, state: State) -> jnp.ndarray:
     box = jnp.sum(size * jnp.abs(axes), axis=-1)
     sphere = size[:, 0]
     reach = jnp.where(kind == CAPSULE, capsule, jnp.where(kind == BOX, box, sphere))
+    dynamic = dynamic & np.isin(kind, (SPHERE, CAPSULE, BOX))
     return jnp.where(dynamic, centre[..., 2] - reach, jnp.inf)
 
 
+def _numbers(values) -> str:
+    return " ".join(repr(round(float(v), 12) + 0.0) for v in np.ravel(values))
+
+
+def mjcf_xml(
+    height: float = REFERENCE_HEIGHT,
+    mass: float = REFERENCE_MASS,
+    drive_stiffness: float | Mapping[str, float] | None = None,
+    drive_damping: float | Mapping[str, float] | None = None,
+    max_torque: float | Mapping[str, float] | None = None,
+    friction: float = FRICTION,
+) -> str:
+    """The doll of `build` (with its floor, at the origin) as an MJCF document.
+
+    Bodies keep the world axes as their frames with explicit inertials (so `load_mjcf` finds the
+    same centres, masses and principal moments); the pelvis has a free joint. A ball joint is
+    written as three hinges through its anchor about x, y, z (MuJoCo has no cone-and-twist ball
+    limits): x and y limited to +-cone, z to the twist, which `load_mjcf` merges back into one
+    ball joint with that cone and twist. Drives are position actuators (kp, kv, forcerange,
+    ctrlrange) on each hinge; the three on a ball joint's hinges become its ball drive.
+    `dbdjax/assets/ragdoll.xml` is `mjcf_xml()`.
+    """
+    _check_size(height, mass, "ragdoll.mjcf_xml")
+    scale = height / REFERENCE_HEIGHT
+    masses, moments = mass_properties(height, mass)
+    drives = _drives(height, mass, drive_stiffness, drive_damping, max_torque)
+    centres = {p.name: scale * _capsule_axis(p)[0] for p in PARTS}
+    joint_of = {spec.child: spec for spec in JOINTS}
+    lines = [
+        '<mujoco model="dbdjax ragdoll">',
+        "  <!-- written by dbdjax.ragdoll.mjcf_xml(); the doll of dbdjax.ragdoll.build() -->",
+        '  <compiler angle="radian" inertiafromgeom="false"/>',
+        f'  <option timestep="{_numbers([DT])}" gravity="0 0 -9.81"/>',
+        "  <worldbody>",
+        f'    <geom name="floor" type="plane" size="0 0 1" friction="{_numbers([friction])} 0.005 0.0001" '
+        'contype="1" conaffinity="1"/>',
+    ]
+    hinges = []  # (joint name, axis name, range, drive) in tree order: the actuators
+
+    def body(part: _Part, depth: int) -> None:
+        pad = "  " * depth
+        parent = np.zeros(3) if part.parent is None else centres[part.parent]
+        centre, half, axis = _capsule_axis(part)
+        lines.append(f'{pad}<body name="{part.name}" pos="{_numbers(centres[part.name] - parent)}">')
+        if part.parent is None:
+            lines.append(f'{pad}  <freejoint name="root"/>')
+        else:
+            spec = joint_of[part.name]
+            at = _numbers(scale * np.asarray(spec.anchor) - centres[part.name])
+            axes = (("x", (1, 0, 0)), ("y", (0, 1, 0)), ("z", spec.axis)) if spec.kind == "ball" else (("", spec.axis),)
+            for (suffix, direction), (low, high) in zip(axes, _ranges(spec), strict=True):
+                name = f"{spec.name}_{suffix}" if suffix else spec.name
+                lines.append(f'{pad}  <joint name="{name}" type="hinge" pos="{at}" axis="{_numbers(direction)}" '
+                             f'limited="true" range="{_numbers([low, high])}"/>')  # fmt: skip
+                hinges.append((name, (low, high), drives[spec.name]))
+        lines.append(f'{pad}  <inertial pos="0 0 0" mass="{_numbers([masses[part.name]])}" '
+                     f'diaginertia="{_numbers(moments[part.name])}"/>')  # fmt: skip
+        ends = np.concatenate([-half * scale * axis, half * scale * axis])
+        lines.append(f'{pad}  <geom name="{part.name}" type="capsule" fromto="{_numbers(ends)}" '
+                     f'size="{_numbers([scale * part.radius])}" friction="{_numbers([friction])} 0.005 0.0001" '
+                     f'contype="{DOLL_CONTYPE}" conaffinity="{DOLL_CONAFFINITY}"/>')  # fmt: skip
+        for child in PARTS:
+            if child.parent == part.name:
+                body(child, depth + 1)
+        lines.append(f"{pad}</body>")
+
+    body(PARTS[0], 2)
+    lines += ["  </worldbody>", "  <actuator>"]
+    for name, (low, high), (stiffness, damping, torque) in hinges:
+        lines.append(f'    <position name="{name}" joint="{name}" kp="{_numbers([stiffness])}" '
+                     f'kv="{_numbers([damping])}" forcelimited="true" forcerange="{_numbers([-torque, torque])}" '
+                     f'ctrllimited="true" ctrlrange="{_numbers([low, high])}"/>')  # fmt: skip
+    lines += ["  </actuator>", "</mujoco>", ""]
+    return "\n".join(lines)
+
+
 def load_mjcf_ragdoll(path: str | Path | None = None, **finalize_kwargs: Any) -> Model:
-    """The doll of `build()` (default size, mass and drives, with its floor) from the MJCF file
-    shipped as dbdjax/assets/ragdoll.xml, loaded with `dbd.load_mjcf` (needs `mujoco`).
-    finalize_kwargs go to `finalize` (dt defaults to the file's timestep, 1/60 s)."""
+    """The doll of `build()` (default size, mass and drives, standing at the origin, with its
+    floor) from the MJCF file dbdjax/assets/ragdoll.xml (or `path`), loaded with `dbd.load_mjcf`
+    (needs `mujoco`). finalize_kwargs go to `finalize` (dt defaults to the file's timestep, 1/60
+    s). Joints of the loaded model are named as in the file: a ball joint "waist_x+waist_y+waist_z".
+    """
     from dbdjax.mjcf import load_mjcf
 
     return load_mjcf(ASSET if path is None else path, **finalize_kwargs)
