@@ -42,8 +42,8 @@ from dbdjax.model import (
     Volumes,
 )
 
-SOLVERS = ("dbd",)
-PLANNED_SOLVERS = ("impulse",)
+SOLVERS = ("dbd", "impulse")
+INITIAL_GUESSES = ("tree", "zero")
 
 
 def _vector(value, size: int, what: str) -> np.ndarray:
@@ -123,6 +123,7 @@ class _Joint:
     motor_max_force: float = 0.0
     motor_control: int | None = None
     passive_drive: bool = False  # add_joint_spring: a drive toward the build pose, no control
+    baumgarte: float | None = None  # beta of SI (17) for the impulse solver; None: finalize's
 
 
 @dataclasses.dataclass
@@ -358,6 +359,7 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Ball-and-socket joint at world point `anchor` (DBD section 5); returns its index.
 
@@ -365,6 +367,9 @@ class ModelBuilder:
         the one fixed in body b (DBD (81)-(83)). twist_limits: (lower, upper) rad in [-pi, pi]
         of the rotation of b about the twist axis. twist_axis: world direction at build time;
         by default the direction from the anchor to body b's centre of mass (the bone).
+        relaxation, regularization: xi and alpha of the DBD solver (DBD (46)-(47)). baumgarte:
+        beta of SI (17) for the impulse solver (None: finalize's `baumgarte`); every joint takes
+        these three.
         """
         label = self._joint_label("ball", name)
         anchor = _vector(anchor, 3, f"{label}: anchor")
@@ -381,7 +386,7 @@ class ModelBuilder:
         lower, upper = self._limits(label, twist_limits, angular=True)
         return self._add_joint(
             label, name, BALL, body_a, body_b, anchor, axis, lower, upper,
-            twist_limits is not None, cone, cone_limit is not None, relaxation, regularization,
+            twist_limits is not None, cone, cone_limit is not None, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def add_hinge_joint(
@@ -394,9 +399,11 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Hinge about world `axis` through `anchor` (DBD 6, SI 2.4); limits (rad) in [-pi, pi]."""
-        return self._add_axis_joint(HINGE, body_a, body_b, anchor, axis, limits, relaxation, regularization, name)
+        return self._add_axis_joint(HINGE, body_a, body_b, anchor, axis, limits, relaxation, regularization, name,
+                                    baumgarte)  # fmt: skip
 
     def add_slider_joint(
         self,
@@ -408,11 +415,14 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Slider (prismatic) along world `axis` (SI 2.3); limits (m) on the travel of b from a."""
-        return self._add_axis_joint(SLIDER, body_a, body_b, anchor, axis, limits, relaxation, regularization, name)
+        return self._add_axis_joint(SLIDER, body_a, body_b, anchor, axis, limits, relaxation, regularization, name,
+                                    baumgarte)  # fmt: skip
 
-    def _add_axis_joint(self, kind, body_a, body_b, anchor, axis, limits, relaxation, regularization, name) -> int:
+    def _add_axis_joint(self, kind, body_a, body_b, anchor, axis, limits, relaxation, regularization, name,
+                        baumgarte=None) -> int:  # fmt: skip
         """Hinge or slider: a joint defined by an anchor and one axis, with optional limits."""
         label = self._joint_label("hinge" if kind == HINGE else "slider", name)
         anchor = _vector(anchor, 3, f"{label}: anchor")
@@ -421,7 +431,7 @@ class ModelBuilder:
         lower, upper = self._limits(label, limits, angular=kind == HINGE)
         return self._add_joint(
             label, name, kind, body_a, body_b, anchor, axis, lower, upper,
-            limits is not None, math.pi, False, relaxation, regularization,
+            limits is not None, math.pi, False, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def add_fixed_joint(
@@ -432,6 +442,7 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Weld b to a at world `anchor` (SI 2.5): no relative motion at all."""
         label = self._joint_label("fixed", name)
@@ -439,7 +450,7 @@ class ModelBuilder:
         self._check_bodies(label, body_a, body_b)
         return self._add_joint(
             label, name, FIXED, body_a, body_b, anchor, np.array([0.0, 0.0, 1.0]), 0.0, 0.0,
-            False, math.pi, False, relaxation, regularization,
+            False, math.pi, False, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def add_planar_joint(
@@ -451,6 +462,7 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Planar joint: b translates in the plane through world `anchor` normal to `normal` and
         rotates about `normal` only (3 degrees of freedom; MJCF's slide-slide-hinge root of a 2-D
@@ -462,7 +474,7 @@ class ModelBuilder:
         self._check_bodies(label, body_a, body_b)
         return self._add_joint(
             label, name, PLANAR, body_a, body_b, anchor, normal, 0.0, 0.0,
-            False, math.pi, False, relaxation, regularization,
+            False, math.pi, False, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def _joint_label(self, kind: str, name: str | None) -> str:
@@ -496,8 +508,10 @@ class ModelBuilder:
         return lower, upper
 
     def _add_joint(self, label, name, kind, body_a, body_b, anchor, axis, lower, upper,
-                   has_limits, cone, has_cone, relaxation, regularization) -> int:  # fmt: skip
+                   has_limits, cone, has_cone, relaxation, regularization, baumgarte=None) -> int:  # fmt: skip
         relaxation = self._relaxation(label, relaxation)
+        if baumgarte is not None:
+            baumgarte = self._baumgarte(f"{label}: baumgarte", baumgarte)
         regularization = _scalar(regularization, f"{label}: regularization")
         if regularization < 0.0:
             raise ValueError(f"{label}: regularization must be >= 0, got {regularization}")
@@ -516,6 +530,7 @@ class ModelBuilder:
                 has_cone,
                 relaxation,
                 regularization,
+                baumgarte=baumgarte,
             )  # fmt: skip
         )
         return len(self._joints) - 1
@@ -698,6 +713,14 @@ class ModelBuilder:
                      self._relaxation(label, relaxation))  # fmt: skip
 
     @staticmethod
+    def _baumgarte(what: str, value) -> float:
+        beta = _scalar(value, what)
+        if not 0.0 <= beta <= 1.0:
+            raise ValueError(f"{what} must be in [0, 1] (SI (17): the fraction of the error removed per step), "
+                             f"got {beta}")  # fmt: skip
+        return beta
+
+    @staticmethod
     def _relaxation(label: str, relaxation) -> float:
         relaxation = _scalar(relaxation, f"{label}: relaxation")
         if not 0.0 < relaxation < 2.0:
@@ -798,6 +821,8 @@ class ModelBuilder:
         contact_margin: float = 0.01,
         contact_compliance: float = 0.0,
         restitution_iterations: int = 2,
+        initial_guess: str = "zero",
+        baumgarte: float = 0.2,
     ) -> Model:
         """Freeze the description into a `Model` for `init`, `step` and `rollout`.
 
@@ -810,6 +835,13 @@ class ModelBuilder:
         only push once they touch). contact_compliance: m/N, 0 for rigid contacts; a small value
         (1e-6 .. 1e-4) makes contact a stiff spring, whose gradients are smoother for trajectory
         optimisation. restitution_iterations: sweeps of the velocity pass (restitution).
+        solver: "dbd" (DBD Algorithm 1, positions) or "impulse" (SI: sequential impulses on the
+        velocities with Baumgarte bias, semi-implicit Euler; solvers/impulse.py). baumgarte: beta
+        of SI (17) for the impulse solver, the share of a position error its bias removes per
+        substep (contacts, links, and joints that were not given their own).
+        initial_guess: where each substep's sweeps start. "zero" (default): dX = 0 as in DBD Algorithm 1;
+          "tree": the exact solution of the linearised point constraints of the joint tree
+          (solvers/tree.py), which long chains need to hold their tension.
         """
         dt = _scalar(dt, "finalize: dt")
         if dt <= 0.0:
@@ -819,9 +851,12 @@ class ModelBuilder:
             if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
                 raise ValueError(f"finalize: {what} must be a positive integer, got {count!r}")
         if solver not in SOLVERS:
-            if solver in PLANNED_SOLVERS:
-                raise ValueError(f"finalize: solver {solver!r} is not available yet; use 'dbd'")
             raise ValueError(f"finalize: unknown solver {solver!r}; choose one of {SOLVERS}")
+        if initial_guess not in INITIAL_GUESSES:
+            raise ValueError(f"finalize: unknown initial_guess {initial_guess!r}; choose one of {INITIAL_GUESSES}")
+        if solver == "impulse":
+            self._check_impulse_support()
+        baumgarte = self._baumgarte("finalize: baumgarte", baumgarte)
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
         contact_margin = self._non_negative(contact_margin, "finalize: contact_margin")
@@ -831,9 +866,18 @@ class ModelBuilder:
             dt=dt, substeps=int(substeps), iterations=int(iterations), solver=solver,
             jacobi=bool(jacobi), velocity_dependent_inertia=bool(velocity_dependent_inertia),
             checkpoint=bool(checkpoint), contact_margin=contact_margin, contact_compliance=contact_compliance,
-            restitution_iterations=int(restitution_iterations),
+            restitution_iterations=int(restitution_iterations), initial_guess=initial_guess, baumgarte=baumgarte,
         )  # fmt: skip
         return self._model(options)
+
+    def _check_impulse_support(self) -> None:
+        """Refuse, naming the element, what the impulse solver has no velocity rows for."""
+        if self._ropes:
+            raise ValueError(f"finalize: rope 0 (over bodies {list(self._ropes[0][0])}): the impulse solver has no "
+                             "rope constraint (DBD 10.1); use solver='dbd', or distances along the rope")  # fmt: skip
+        if self._volumes:
+            raise ValueError(f"finalize: volume 0 (over bodies {list(self._volumes[0][0])}): the impulse solver has "
+                             "no volume constraint (DBD 10.2); use solver='dbd'")  # fmt: skip
 
     def _resolve_bodies(self) -> tuple[list[_Body], list[tuple[np.ndarray, np.ndarray]]]:
         """Bodies with every mass and inertia filled in, and each shape's pose in its body's frame.
@@ -954,6 +998,8 @@ class ModelBuilder:
                                  for j in js], 4),  # fmt: skip
             **{f: column(js, f) for f in ("lower", "upper", "cone_limit", "relaxation", "regularization",
                                           "drive_stiffness", "drive_damping", "drive_max_torque", "motor_max_force")},
+            baumgarte=jnp.asarray(np.asarray([options.baumgarte if j.baumgarte is None else j.baumgarte for j in js],
+                                             dtype=np.float64)),
         )  # fmt: skip
 
         def links(records) -> tuple[dict, StaticArray]:

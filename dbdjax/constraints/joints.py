@@ -109,22 +109,23 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
     return frozenset(used | {"point"})
 
 
-def _anchor_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
-    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX."""
+def joint_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
+    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX, for one joint
+    (no J axis) whose bodies have the orientations quat_a, quat_b."""
     return row.anchor_points(pair, joint.local_anchor_a, joint.local_anchor_b, flag.world_a, flag.world_b,
                              quat_a, quat_b)  # fmt: skip
 
 
-def _relative_rotation(joint: Joints, quat_a, quat_b):
+def relative_rotation(joint: Joints, quat_a, quat_b):
     """X with q_b = q_a X rest: the rotation of b away from its rest pose, in a's frame."""
     relative = math.quat_multiply(math.quat_conjugate(quat_a), quat_b)
     return math.quat_multiply(relative, math.quat_conjugate(joint.rest_rotation))
 
 
-def _hinge_angle(joint: Joints, pair: BodyPair):
+def hinge_angle(joint: Joints, pair: BodyPair):
     """(angle of b about the axle from its rest pose (rad), world axle = dangle/dtheta_b)."""
     quat_a, quat_b = pair.current_quats()
-    angle = math.quat_twist_angle(_relative_rotation(joint, quat_a, quat_b), joint.local_axis_a)
+    angle = math.quat_twist_angle(relative_rotation(joint, quat_a, quat_b), joint.local_axis_a)
     # The bisector of the two bodies' axes (equal for a hinge, close for a ball's twist axis).
     axis, _ = math.safe_normalize(
         math.quat_rotate(quat_a, joint.local_axis_a) + math.quat_rotate(quat_b, joint.local_axis_b)
@@ -132,13 +133,13 @@ def _hinge_angle(joint: Joints, pair: BodyPair):
     return angle, axis
 
 
-def _slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
+def slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
     """(travel d = (p_b - p_a) . axis, world axis, arm_a, arm_b) of a slider, SI (65)-(78).
 
     Body a's arm reaches the point of a level with p_b, so an impulse along the axis acts on the
     line through both points."""
     quat_a, quat_b = pair.current_quats()
-    delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
+    delta, arm_a, arm_b = joint_points(joint, flag, pair, quat_a, quat_b)
     axis = math.quat_rotate(quat_a, joint.local_axis_a)
     travel = -math.dot(delta, axis)
     across = delta + travel[..., None] * axis
@@ -171,7 +172,7 @@ def project(
     stiffness_h2, damping_h = joint.drive_stiffness * h**2, joint.drive_damping * h
     torque_bound = joint.drive_max_torque * h**2
     if "hinge_drive" in rows:
-        angle, axis = _hinge_angle(joint, pair)
+        angle, axis = hinge_angle(joint, pair)
         offset = angle - target.drive[0]
         error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
         pair, lam[DRIVE] = row.angular_row(
@@ -181,7 +182,7 @@ def project(
     if "ball_drive" in rows:
         quat_a, quat_b = pair.current_quats()
         goal = math.quat_exp(target.drive)  # the target relative rotation, in a's frame
-        error_rotation = math.quat_multiply(_relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
+        error_rotation = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
         error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
         pair, kappa = row.angular_spring(
             pair, error, jnp.stack(lam[DRIVE : DRIVE + 3]), xi, stiffness_h2, damping_h, torque_bound,
@@ -192,12 +193,12 @@ def project(
     # Motor: the relative speed along the axle or slide axis, force-limited (SI 2.3.6, 2.4.6).
     force_bound = joint.motor_max_force * h**2
     if "angular_motor" in rows:
-        _, axis = _hinge_angle(joint, pair)
+        _, axis = hinge_angle(joint, pair)
         pair, lam[MOTOR] = row.angular_row(
             pair, -axis, 0.0, lam[MOTOR], row.motor(xi, flag.angular_motor, target.motor * h, force_bound), h
         )
     if "linear_motor" in rows:
-        _, axis, arm_a, arm_b = _slider_travel(joint, flag, pair)
+        _, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
         pair, lam[MOTOR] = row.positional_row(
             pair, -axis, arm_a, arm_b, 0.0, lam[MOTOR],
             row.motor(xi, flag.linear_motor, target.motor * h, force_bound), h,
@@ -211,7 +212,7 @@ def project(
         axis_a = math.quat_rotate(quat_a, joint.local_axis_a)
         axis_b = math.quat_rotate(quat_b, joint.local_axis_b)
         axle_angle, axle_axis = math.angle_between(axis_a, axis_b)
-        relative = _relative_rotation(joint, quat_a, quat_b)
+        relative = relative_rotation(joint, quat_a, quat_b)
         lock_axis, lock_angle = math.safe_normalize(math.quat_rotate(quat_a, math.quat_log(relative)))
         axle = flag.hinge | flag.planar
         error = jnp.where(axle, axle_angle, lock_angle)
@@ -224,7 +225,7 @@ def project(
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83).
     if "has_angle_limits" in rows:
         for index, sign in ((ANGLE_LOWER, -1.0), (ANGLE_UPPER, 1.0)):
-            angle, axis = _hinge_angle(joint, pair)
+            angle, axis = hinge_angle(joint, pair)
             error = (angle - joint.lower) if sign < 0 else (joint.upper - angle)
             pair, lam[index] = row.angular_row(
                 pair, sign * axis, error, lam[index], hard(flag.has_angle_limits, inequality=True)
@@ -243,7 +244,7 @@ def project(
     # Slider travel limits, SI (65)-(78), on the travel d = (p_b - p_a) . axis.
     if "has_travel_limits" in rows:
         for index, sign, bound in ((TRAVEL_LOWER, -1.0, joint.lower), (TRAVEL_UPPER, 1.0, joint.upper)):
-            travel, axis, arm_a, arm_b = _slider_travel(joint, flag, pair)
+            travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
             error = (travel - bound) if sign < 0 else (bound - travel)
             pair, lam[index] = row.positional_row(
                 pair, sign * axis, arm_a, arm_b, error, lam[index], hard(flag.has_travel_limits, inequality=True)
@@ -258,7 +259,7 @@ def project(
     # A slider only removes the part across its axis (SI (51)), a planar joint only the part along
     # its normal; both act level with p_b on a.
     quat_a, quat_b = pair.current_quats()
-    delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
+    delta, arm_a, arm_b = joint_points(joint, flag, pair, quat_a, quat_b)
     constrained = None
     if "slider" in rows or "planar" in rows:
         axis = math.quat_rotate(quat_a, joint.local_axis_a)

@@ -2,6 +2,8 @@
 
     prepare:  inverse masses and world inverse inertias at X* (once per substep), and each
               colour's constraint parameters gathered into its own arrays
+    guess:    dX = 0, or with initial_guess="tree" dX and the joints' point multipliers from the
+              exact linear solve of the joint tree's point constraints (solvers/tree.py)
     repeat `iterations` times:                                   (lax.scan)
         for each colour, in order:                               (unrolled: a model has few)
             for each constraint family present in the colour:
@@ -24,9 +26,10 @@ import numpy as np
 
 from dbdjax import constraints, integrator
 from dbdjax.collision import ContactSlots
-from dbdjax.constraints import Family
+from dbdjax.constraints import Family, joints
 from dbdjax.constraints.rows import BodySet
 from dbdjax.model import Colour, Model, State, with_world_row
+from dbdjax.solvers import tree
 
 
 def body_table(model: Model, state: State, h: float) -> BodySet:
@@ -105,7 +108,7 @@ class _Run:
         self.body_slot = np.stack(slots)  # (R, N + 1)
 
 
-def _gauss_seidel(
+def gauss_seidel(
     colours: tuple[Colour, ...], families: list[Family], table: BodySet, iterations: int, multipliers: list
 ) -> tuple[jnp.ndarray, jnp.ndarray, list]:
     """`iterations` sweeps over the colours; multipliers: one (M_f, m_f) array per family, in
@@ -178,7 +181,7 @@ def _gauss_seidel(
     return dx, dtheta, result
 
 
-def _jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list):
+def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list):
     """Every node at once from the same dX; each body moves by the mean of its nodes' requests."""
     n = table.dx.shape[0] - 1
     used = [f for f, family in enumerate(families) if len(family.bodies)]
@@ -218,10 +221,16 @@ def solve(
     multipliers = [jnp.zeros((len(f.bodies), f.num_multipliers), dtype) for f in all_families]
     if any(len(f.bodies) for f in all_families):
         table = body_table(model, predicted, h)
+        if options.initial_guess == "tree" and tree.forest(structure)[0].size:
+            # Start from the exact linear solve of the tree's point constraints, each joint's point
+            # multiplier at the impulse it took there (families[0] are the joints).
+            dx, dtheta, kappa = tree.initial_guess(model, table)
+            table = table._replace(dx=dx, dtheta=dtheta)
+            multipliers[0] = multipliers[0].at[:, joints.POINT : joints.POINT + 3].set(kappa)
         if options.jacobi:
-            dx, dtheta, multipliers = _jacobi(all_families, table, options.iterations, multipliers)
+            dx, dtheta, multipliers = jacobi(all_families, table, options.iterations, multipliers)
         else:
-            dx, dtheta, multipliers = _gauss_seidel(structure.colours, all_families, table, options.iterations,
+            dx, dtheta, multipliers = gauss_seidel(structure.colours, all_families, table, options.iterations,
                                                     multipliers)  # fmt: skip
     else:
         dx = dtheta = jnp.zeros((n + 1, 3), dtype)
@@ -239,7 +248,7 @@ def restitution(
         return state
     families = constraints.restitution_families(model, contacts, h)
     table = body_table(model, state, h)
-    dv, dw, _ = _gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
+    dv, dw, _ = gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
                               list(normal))  # fmt: skip
     n = model.num_bodies
     return State(pos=state.pos, quat=state.quat, vel=state.vel + dv[:n], ang_vel=state.ang_vel + dw[:n])
