@@ -7,8 +7,8 @@
     state = dbd.step(model, dbd.init(model), control)
 
 The doll stands at build time (arms hanging at its sides), faces +x, its left is +y, z is up. 15
-bodies (pelvis, torso, head, upper_arm/lower_arm/hand and thigh/shin/foot on each side); the feet
-are boxes, everything else a capsule, one shape per body. 14 joints: ball joints with cone and
+bodies (pelvis, torso, head, upper_arm/lower_arm/hand and thigh/shin/foot on each side), one
+capsule each (the feet lie along x, heel to toe; the pelvis along y). 14 joints: ball joints with cone and
 twist limits at the waist, neck, shoulders and hips (the twist axis is the world z axis at build
 time, along the bone); hinges at the elbows and knees (flexion), the ankles (about y) and the
 wrists (about x). Every joint has a drive (DBD 9, `ModelBuilder.add_drive`) whose target is the
@@ -18,23 +18,28 @@ a ball joint's target is a rotation vector in world axes of the standing doll.
 
 Stabilisation, as game engines build ragdolls (PhysX / Havok guidance):
 
-- mass ratios: the segment masses are fixed fractions of `mass` (after de Leva's table, with the
-  trunk split so that no jointed pair is further apart than MAX_MASS_RATIO = 10: the torso is
-  8.3 times an upper arm, the heaviest ratio).
-- inertia: each body's inertia is that of its shape at its mass, then, from the hands and feet
-  up to the pelvis, every principal moment of a parent is raised to at least the sum of the
-  largest principal moments of its children (`_stabilised_inertia`). A light parent between
-  heavy children (the pelvis between torso and thighs) otherwise gets spun by the drives and
-  joint corrections of its children faster than the Gauss-Seidel sweeps converge. Raising the
-  smallest moments keeps the triangle inequality. The pelvis gains the most (about 10x).
+- mass ratios: the segment masses are fixed fractions of `mass` (roughly anatomical, after de
+  Leva's table, with the trunk split so that no jointed pair is further apart than
+  MAX_MASS_RATIO = 10: the torso is 8.3 times an upper arm, the largest ratio).
+- inertia: each body's inertia is that of its capsule at its mass, then (`_stabilised_inertia`)
+  each foot's moments are raised to its shin's largest (the standing doll's load path roots at
+  the feet: a foot at its own inertia is turned far more than the shin by the ankle drive, the
+  floor turns it back, the two fight and the feet creep until the doll falls), and then, from
+  the hands and feet up to the pelvis, every principal moment of a parent to at least the sum
+  of its children's largest (a light parent between heavy children, the pelvis between the
+  torso and the thighs, is otherwise spun by its children's drives and joint corrections faster
+  than the Gauss-Seidel sweeps converge). Only moments below those bounds are raised, which
+  keeps the triangle inequality. The pelvis gains 6-11x, the feet 10-45x, the shins' and
+  thighs' moments about their long axes 11x and 2.5x; the other bodies keep theirs.
 - collision: jointed neighbours never touch (`ModelBuilder` excludes jointed pairs), and by
   default the doll does not collide with itself at all: its shapes have contype 2 and
   conaffinity 1, so they touch anything with contype bit 1 (the floor and the builder's default
   shapes) but not each other (MuJoCo's rule (ct_a & ca_b) | (ct_b & ca_a)). Every shape pair
-  that may touch is a contact node solved each iteration, and self-contacts (limbs crossing
-  through the body) are rare in the motions the drives make within the joint limits; leaving
-  them out keeps the doll-floor contacts (15 nodes) in one colour. `self_collision=True` gives
-  conaffinity 3 instead: every pair of non-jointed bodies (91 more nodes) may touch.
+  that may touch is a contact node solved each iteration; without self-contacts the 15 floor
+  contacts fill one colour of the solver. The price: limbs may pass through each other (legs
+  crossing, an arm through the torso), as in many game ragdolls. `self_collision=True` gives
+  conaffinity 3 instead: every pair of non-jointed bodies (91 more nodes) may touch; in the
+  build pose none overlap (the hands hang 5 mm beside the thighs).
 - drives: implicit (DBD 9), so stiff drives stay stable; their torque is limited per joint.
 
 `pose_control` turns a pose (joint name -> angle or rotation vector) into the control vector.
