@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 
 import jax
@@ -11,14 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scenes
+from derivatives import central_difference, quick_jit, relative_error
 
 import dbdjax as dbd
 from dbdjax import diagnostics
 from dbdjax.solvers import impulse
 
 GRAVITY = 9.81
-# Gradient checks compare derivatives, not speed: LLVM at -O0 compiles them faster.
-quick_jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 
 
 def rollout(model, steps, state=None, controls=None):
@@ -233,20 +231,6 @@ def test_ragdoll_dropped_at_dt_one_thirtieth_joint_gaps_of_both_solvers():
 
 
 # ------------------------------------------------------------------------------ gradients
-
-
-def central_difference(function, x, epsilon=1e-6):
-    x = np.asarray(x, dtype=np.float64)
-    gradient = np.zeros_like(x)
-    for index in np.ndindex(x.shape):
-        step = np.zeros_like(x)
-        step[index] = epsilon
-        gradient[index] = (function(x + step) - function(x - step)) / (2 * epsilon)
-    return gradient
-
-
-def relative_error(a, b):
-    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / max(np.linalg.norm(np.asarray(b)), 1e-12))
 
 
 def test_pendulum_gradient_matches_finite_differences(float64):

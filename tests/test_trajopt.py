@@ -11,28 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from derivatives import central_difference, quick_jit, relative_error
 
 import dbdjax as dbd
 from dbdjax.training import checkpoint, trajopt
 
 ROOT = Path(__file__).resolve().parent.parent
-
-# Derivative checks, not speed: LLVM at -O0 more than halves their compile time.
-quick_jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
-
-
-def central_difference(function, x, epsilon=1e-6):
-    x = np.asarray(x, dtype=np.float64)
-    gradient = np.zeros_like(x)
-    for index in np.ndindex(x.shape):
-        step = np.zeros_like(x)
-        step[index] = epsilon
-        gradient[index] = (function(x + step) - function(x - step)) / (2 * epsilon)
-    return gradient
-
-
-def relative_error(a, b):
-    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / max(np.linalg.norm(np.asarray(b)), 1e-12))
 
 
 @functools.cache
