@@ -1077,9 +1077,11 @@ class ModelBuilder:
             control_range=StaticArray(np.reshape(np.asarray(self._control_ranges, dtype=np.float64), (-1, 2))),
             joint_passive_drive=StaticArray(np.asarray([j.passive_drive for j in js], dtype=bool)),
         )
+        contacts = len(structure.contact_groups)  # contact groups in colours of their own (colouring.py)
+        contact_class = [0] * (len(structure.family_bodies()) - contacts) + [1] * contacts
         structure = dataclasses.replace(
             structure,
-            colours=colouring.colour_groups(structure.family_bodies(), n),
+            colours=colouring.colour_groups(structure.family_bodies(), n, classes=contact_class),
             contact_colours=colouring.colour_groups([g.bodies.array for g in structure.contact_groups], n),
         )
         sh = self._shapes

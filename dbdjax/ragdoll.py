@@ -70,6 +70,10 @@ FRICTION = 0.9  # doll shapes and the floor
 DT = 1.0 / 60.0
 SUBSTEPS = 2
 ITERATIONS = 8
+# Default drives of a 70 kg, 1.8 m doll at share 1 (waist, hips, knees), scaled by mass x height.
+STIFFNESS = 10000.0  # N m/rad
+DAMPING = 500.0  # N m s/rad
+MAX_TORQUE = 400.0  # N m
 ASSET = Path(__file__).parent / "assets" / "ragdoll.xml"
 
 
@@ -90,7 +94,8 @@ class _Part:
 @dataclasses.dataclass(frozen=True)
 class _JointSpec:
     """One joint: kind 'ball' (limits: cone, twist) or 'hinge' (axis, limits (lower, upper)).
-    strength: the drive's share of `drive_stiffness`, `drive_damping` and `max_torque`."""
+    strength: the drive's share of `drive_stiffness` and `drive_damping`; torque: its share of
+    `max_torque` (roughly a person's strength: the arms are far weaker than the legs)."""
 
     name: str
     parent: str
@@ -99,6 +104,7 @@ class _JointSpec:
     anchor: tuple[float, float, float]
     limits: tuple[float, float]
     strength: float
+    torque: float
     axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
 
@@ -141,24 +147,25 @@ def _joint_specs() -> tuple[_JointSpec, ...]:
     bone now, and the symmetric twist about it. Hinge axes: knees about +y and elbows about -y
     (positive = flexion), ankles about +y (positive = toes down), wrists about +x."""
     specs = [
-        _JointSpec("waist", "pelvis", "torso", "ball", (0.0, 0.0, 1.05), (0.6, 0.6), 1.0),
-        _JointSpec("neck", "torso", "head", "ball", (0.0, 0.0, 1.53), (0.7, 1.0), 0.15),
+        _JointSpec("waist", "pelvis", "torso", "ball", (0.0, 0.0, 1.05), (0.6, 0.6), 1.0, 1.0),
+        _JointSpec("neck", "torso", "head", "ball", (0.0, 0.0, 1.53), (0.7, 1.0), 0.15, 0.125),
     ]
     for s in "lr":
         specs += [
-            _JointSpec(f"shoulder_{s}", "torso", f"upper_arm_{s}", "ball", _sided(s, (0, 0.2, 1.43)), (2.4, 1.2), 0.3),
+            _JointSpec(f"shoulder_{s}", "torso", f"upper_arm_{s}", "ball", _sided(s, (0, 0.2, 1.43)), (2.4, 1.2), 0.3,
+                       0.2),
             _JointSpec(f"elbow_{s}", f"upper_arm_{s}", f"lower_arm_{s}", "hinge", _sided(s, (0, 0.2, 1.16)),
-                       (0.0, 2.4), 0.15, (0.0, -1.0, 0.0)),
+                       (0.0, 2.4), 0.15, 0.15, (0.0, -1.0, 0.0)),
             _JointSpec(f"wrist_{s}", f"lower_arm_{s}", f"hand_{s}", "hinge", _sided(s, (0, 0.2, 0.90)),
-                       (-1.0, 1.0), 0.03, (1.0, 0.0, 0.0)),
+                       (-1.0, 1.0), 0.03, 0.04, (1.0, 0.0, 0.0)),
         ]  # fmt: skip
     for s in "lr":
         specs += [
-            _JointSpec(f"hip_{s}", "pelvis", f"thigh_{s}", "ball", _sided(s, (0, 0.09, 0.92)), (1.6, 0.6), 1.0),
-            _JointSpec(f"knee_{s}", f"thigh_{s}", f"shin_{s}", "hinge", _sided(s, (0, 0.09, 0.50)), (0.0, 2.4), 1.0,
-                       (0.0, 1.0, 0.0)),
-            _JointSpec(f"ankle_{s}", f"shin_{s}", f"foot_{s}", "hinge", _sided(s, (0, 0.09, 0.085)), (-0.5, 0.8), 0.8,
-                       (0.0, 1.0, 0.0)),
+            _JointSpec(f"hip_{s}", "pelvis", f"thigh_{s}", "ball", _sided(s, (0, 0.09, 0.92)), (1.6, 0.6), 1.0, 1.0),
+            _JointSpec(f"knee_{s}", f"thigh_{s}", f"shin_{s}", "hinge", _sided(s, (0, 0.09, 0.50)), (0.0, 2.4),
+                       1.0, 1.0, (0.0, 1.0, 0.0)),
+            _JointSpec(f"ankle_{s}", f"shin_{s}", f"foot_{s}", "hinge", _sided(s, (0, 0.09, 0.085)), (-0.5, 0.8),
+                       0.8, 0.75, (0.0, 1.0, 0.0)),
         ]  # fmt: skip
     return tuple(specs)
 
@@ -254,16 +261,16 @@ def mass_properties(height: float = REFERENCE_HEIGHT, mass: float = REFERENCE_MA
     return masses, (_stabilised_inertia(moments) if stabilise else moments)
 
 
-def _drive_parameter(value, default: float, joint: _JointSpec, what: str) -> float:
-    """A drive parameter of one joint: value (float: for strength 1, scaled by the joint's
-    strength; Mapping: per joint name, missing joints from the default) or the default."""
+def _drive_parameter(value, default: float, joint: _JointSpec, share: float, what: str) -> float:
+    """A drive parameter of one joint: value (float: the value at share 1, times the joint's
+    share; Mapping: per joint name, missing joints from the default) or the default (at share 1)."""
     if isinstance(value, Mapping):
         unknown = set(value) - set(JOINT_NAMES)
         if unknown:
             raise ValueError(f"ragdoll.build: {what} names unknown joints {sorted(unknown)}; joints: {JOINT_NAMES}")
-        return float(value[joint.name]) if joint.name in value else default * joint.strength
+        return float(value[joint.name]) if joint.name in value else default * share
     base = default if value is None else float(value)
-    return base * joint.strength
+    return base * share
 
 
 def _drives(height: float, mass: float, drive_stiffness, drive_damping, max_torque) -> dict[str, tuple]:
@@ -271,9 +278,9 @@ def _drives(height: float, mass: float, drive_stiffness, drive_damping, max_torq
     strength = (mass / REFERENCE_MASS) * (height / REFERENCE_HEIGHT)
     return {
         spec.name: (
-            _drive_parameter(drive_stiffness, 10000.0 * strength, spec, "drive_stiffness"),
-            _drive_parameter(drive_damping, 500.0 * strength, spec, "drive_damping"),
-            _drive_parameter(max_torque, 600.0 * strength, spec, "max_torque"),
+            _drive_parameter(drive_stiffness, STIFFNESS * strength, spec, spec.strength, "drive_stiffness"),
+            _drive_parameter(drive_damping, DAMPING * strength, spec, spec.strength, "drive_damping"),
+            _drive_parameter(max_torque, MAX_TORQUE * strength, spec, spec.torque, "max_torque"),
         )
         for spec in JOINTS
     }
@@ -311,11 +318,14 @@ def build(
 
     height: m, top of the head above the soles (every length scales with it). mass: kg in all.
     drive_stiffness (N m/rad), drive_damping (N m s/rad), max_torque (N m): a number is the value
-      for the strongest joints (waist, hips, knees); the others get a share (ankles 0.8,
-      shoulders 0.3, neck and elbows 0.15, wrists 0.03). A Mapping gives values per joint name
-      (joints left out keep their default share). None: 10000, 500 and 600 scaled by
-      (mass / 70) (height / 1.8), which hold the build pose standing at dt = 1/60 with SUBSTEPS
-      and ITERATIONS.
+      for the strongest joints (waist, hips, knees); the others get a share (stiffness and
+      damping: ankles 0.8, shoulders 0.3, neck and elbows 0.15, wrists 0.03; torque: ankles 0.75,
+      shoulders 0.2, elbows 0.15, neck 0.125, wrists 0.04). A Mapping gives values per joint name
+      (joints left out keep their default). None: STIFFNESS, DAMPING and MAX_TORQUE (10000,
+      500, 400) scaled by (mass / 70) (height / 1.8): stiff enough to hold the build pose
+      standing at dt = 1/60 with SUBSTEPS and ITERATIONS (weaker drives sag and the doll tips
+      over slowly: the sweeps have not converged), torques of a strong person (the hips 400,
+      the shoulders 80, the wrists 16 N m).
     pos: (x, y) where the feet stand and z the ground height. floor: add a static plane at z =
       pos[2] (contype 1, friction `friction`). self_collision: let the doll's own non-jointed
       bodies touch (91 more contact pairs; see the module docstring).
