@@ -270,8 +270,14 @@ def _ragdoll_model(horizon, dt, substeps, iterations, contact_compliance, checkp
     if horizon < 1:
         raise ValueError(f"ragdoll task: horizon must be >= 1, got {horizon}")
     builder, doll = ragdoll.build(height=height)
-    model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations, checkpoint=checkpoint,
-                             contact_compliance=contact_compliance)  # fmt: skip
+    # None: the doll's own defaults (ragdoll.DT, SUBSTEPS, ITERATIONS: what its standing tests use)
+    model = builder.finalize(
+        dt=ragdoll.DT if dt is None else dt,
+        substeps=ragdoll.SUBSTEPS if substeps is None else substeps,
+        iterations=ragdoll.ITERATIONS if iterations is None else iterations,
+        checkpoint=checkpoint,
+        contact_compliance=contact_compliance,
+    )
     return ragdoll, doll, model
 
 
@@ -299,9 +305,9 @@ POSE_STILL = ("head", "pelvis", "foot_l", "foot_r")  # these keep their standing
 
 def ragdoll_pose_task(
     horizon: int = 60,
-    dt: float = 1.0 / 60.0,
-    substeps: int = 2,
-    iterations: int = 6,
+    dt: float | None = None,
+    substeps: int | None = None,
+    iterations: int | None = None,
     effort: float = 1e-3,
     contact_compliance: float = 0.0,
     height: float = 1.8,
@@ -313,7 +319,8 @@ def ragdoll_pose_task(
     Cost: over the second half of the horizon, the mean of the summed squared distances (m^2) of
     the hands, head, pelvis and feet to their targets, plus effort x the mean over steps of
     |control|^2 (rad^2). Controls are drive targets, bounded by the doll's control range. dt,
-    substeps, iterations, contact_compliance, checkpoint: `finalize` arguments.
+    substeps, iterations (None: the doll's defaults ragdoll.DT, SUBSTEPS, ITERATIONS),
+    contact_compliance, checkpoint: `finalize` arguments.
     """
     ragdoll, doll, model = _ragdoll_model(horizon, dt, substeps, iterations, contact_compliance, checkpoint, height)
     start = dbd.init(model)
@@ -342,7 +349,8 @@ def ragdoll_pose_task(
         ax.set_title("ragdoll pose: start (grey), last step (blue)")
         ax.legend(loc="lower right")
 
-    settings = dict(horizon=horizon, dt=dt, substeps=substeps, iterations=iterations, effort=effort,
+    settings = dict(horizon=horizon, dt=model.dt, substeps=model.options.substeps,
+                    iterations=model.options.iterations, effort=effort,
                     contact_compliance=contact_compliance, height=height, checkpoint=checkpoint)  # fmt: skip
 
     def report(trajectory: State) -> dict:
@@ -359,9 +367,9 @@ def ragdoll_pose_task(
 
 def ragdoll_jump_task(
     horizon: int = 45,
-    dt: float = 1.0 / 60.0,
-    substeps: int = 2,
-    iterations: int = 6,
+    dt: float | None = None,
+    substeps: int | None = None,
+    iterations: int | None = None,
     effort: float = 1e-4,
     sharpness: float = 0.01,
     contact_compliance: float = 0.0,
@@ -371,7 +379,8 @@ def ragdoll_jump_task(
     """The ragdoll jumps: cost = - (smooth) maximum over the horizon of the pelvis centre's height
     (m), sharpness * logsumexp(z / sharpness) (within sharpness * log T of the maximum), plus effort
     x the mean over steps of |control|^2 (rad^2). Starts standing with zero controls (the build
-    pose). dt, substeps, iterations, contact_compliance, checkpoint: `finalize` arguments.
+    pose). dt, substeps, iterations (None: the doll's defaults), contact_compliance, checkpoint:
+    `finalize` arguments.
     """
     ragdoll, doll, model = _ragdoll_model(horizon, dt, substeps, iterations, contact_compliance, checkpoint, height)
     start = dbd.init(model)
@@ -382,7 +391,7 @@ def ragdoll_jump_task(
         return -peak + effort * jnp.mean(jnp.sum(controls * controls, axis=-1))
 
     def draw(ax, trajectory: State) -> None:
-        times = dt * np.arange(1, horizon + 1)
+        times = model.dt * np.arange(1, horizon + 1)
         heights = np.asarray(trajectory.pos[:, pelvis, 2])
         ax.plot(times, heights, color="tab:blue", label="pelvis centre")
         ax.axhline(float(start.pos[pelvis, 2]), color="0.6", linestyle="--", label="standing")
@@ -391,7 +400,8 @@ def ragdoll_jump_task(
         ax.set_title(f"ragdoll jump: peak {heights.max():.3f} m")
         ax.legend(loc="lower right")
 
-    settings = dict(horizon=horizon, dt=dt, substeps=substeps, iterations=iterations, effort=effort,
+    settings = dict(horizon=horizon, dt=model.dt, substeps=model.options.substeps,
+                    iterations=model.options.iterations, effort=effort,
                     sharpness=sharpness, contact_compliance=contact_compliance, height=height,
                     checkpoint=checkpoint)  # fmt: skip
 
