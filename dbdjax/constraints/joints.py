@@ -29,10 +29,11 @@ from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
 from dbdjax.model import BALL, FIXED, HINGE, PLANAR, SLIDER, Joints, Structure
 
-# Multipliers of one joint, in the order of `project`'s rows. The ball drive's torque and the
-# point block's impulse are 3-vectors: they own slots [DRIVE, DRIVE + 3) and [POINT, POINT + 3).
-DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 5, 6, 7
-TRAVEL_LOWER, TRAVEL_UPPER, POINT = 8, 9, 10
+# Multipliers of one joint, in the order of `project`'s rows. The ball drive's torque, the
+# rotation lock's and the point block's impulses are 3-vectors: they own slots [DRIVE, DRIVE + 3),
+# [ROTATION_LOCK, ROTATION_LOCK + 3) and [POINT, POINT + 3).
+DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 7, 8, 9
+TRAVEL_LOWER, TRAVEL_UPPER, POINT = 10, 11, 12
 NUM_MULTIPLIERS = POINT + 3
 
 
@@ -204,22 +205,28 @@ def project(
             row.motor(xi, flag.linear_motor, target.motor * h, force_bound), h,
         )  # fmt: skip
 
-    # Angular lock. Hinge: the axle constraint, angle between the axes (73) along w (75); the
-    # update rotates a toward b (78). Slider, fixed: the whole relative rotation (SI (53)),
-    # in its rotation-invariant magnitude form so that it conserves angular momentum (DBD 5.1).
+    # Angular lock, one block of rows (`row.angular_block`) so that where the lock holds no row
+    # takes its direction from a normalised near-zero vector. Hinge and planar: the axle
+    # alignment (DBD 6 (73)-(80), SI 2.4.1): c = axis_b x axis_a (|c| = sin of (73)'s angle),
+    # locked across the bisector of the two axes; a rotation of a by dtheta changes c by
+    # P dtheta, P the projector across the axle. Slider, fixed: the whole relative rotation
+    # (SI (53)), c = minus the world rotation vector of X.
     if "rotation_lock" in rows:
         quat_a, quat_b = pair.current_quats()
         axis_a = math.quat_rotate(quat_a, joint.local_axis_a)
         axis_b = math.quat_rotate(quat_b, joint.local_axis_b)
-        axle_angle, axle_axis = math.angle_between(axis_a, axis_b)
-        relative = relative_rotation(joint, quat_a, quat_b)
-        lock_axis, lock_angle = math.safe_normalize(math.quat_rotate(quat_a, math.quat_log(relative)))
         axle = flag.hinge | flag.planar
-        error = jnp.where(axle, axle_angle, lock_angle)
-        direction = jnp.where(axle[..., None], -axle_axis, -lock_axis)  # dc/dtheta_a
-        pair, lam[ROTATION_LOCK] = row.angular_row(
-            pair, direction, error, lam[ROTATION_LOCK], hard(axle | flag.rotation_locked)
-        )
+        bisector, _ = math.safe_normalize(axis_a + axis_b)
+        eye = jnp.eye(3, dtype=axis_a.dtype)
+        across = jnp.where(axle, eye - bisector[:, None] * bisector[None, :], eye)
+        misalignment = math.cross(axis_b, axis_a)
+        lock = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
+        error = jnp.where(axle, misalignment, lock)
+        pair, locked = row.angular_block(
+            pair, error, jnp.stack(lam[ROTATION_LOCK : ROTATION_LOCK + 3]), hard(axle | flag.rotation_locked),
+            constrained=across,
+        )  # fmt: skip
+        lam[ROTATION_LOCK : ROTATION_LOCK + 3] = list(locked)
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83).

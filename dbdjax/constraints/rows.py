@@ -281,6 +281,43 @@ def angular_spring(
     return moved, multiplier + step
 
 
+def angular_block(
+    pair: BodyPair,
+    error: jnp.ndarray,
+    multiplier: jnp.ndarray,
+    rule: Rule,
+    constrained: jnp.ndarray | None = None,
+) -> tuple[BodyPair, jnp.ndarray]:
+    """Project a rotation lock c = `error` (3,) rad, with dc/dtheta_a = 1 = -dc/dtheta_b, as one
+    block of three angular rows (SI (53), (85)-(88)) by the rigid rule in matrix form, with the
+    effective inverse inertia W = I_a^-1 + I_b^-1 (113) regularised by alpha.
+
+    The angular twin of `point_block`, and for the same reason: the one-row magnitude form (a row
+    along the normalised error) takes its direction from rounding noise where the lock holds, so
+    the sweeps would amplify that noise instead of damping it. multiplier: (3,) so far this
+    substep (kg m^2). constrained: (3, 3) orthogonal projector onto the locked directions (the
+    plane across a hinge's axle, SI 2.4.1), None for all three. Returns the moved pair and the new
+    multiplier.
+    """
+    if rule.spring or rule.speed:
+        raise ValueError("angular_block takes the rigid rule only")
+    eye = jnp.eye(3, dtype=error.dtype)
+    inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b + rule.regularization * eye  # (113), (47)
+    residual = error + rule.regularization * multiplier
+    if constrained is not None:  # restricted to range(P), as in point_block
+        inverse_inertia = constrained @ inverse_inertia @ constrained + (eye - constrained)
+        residual = math.matvec(constrained, residual)
+    determinant = math.dot(inverse_inertia[0], math.cross(inverse_inertia[1], inverse_inertia[2]))
+    solvable = rule.active & (determinant > 0.0)  # positive definite unless both sides are static
+    solve = math.inverse3(jnp.where(solvable, inverse_inertia, eye))
+    step = jnp.where(solvable, -rule.relaxation * math.matvec(solve, residual), 0.0)
+    moved = pair._replace(
+        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, step),
+        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, step),
+    )
+    return moved, multiplier + step
+
+
 def point_response(arm: jnp.ndarray, inv_mass: jnp.ndarray, inv_inertia: jnp.ndarray) -> jnp.ndarray:
     """How the point at `arm` from a body's centre moves per unit impulse there, (3, 3):
     1/m 1 - [arm]x I^-1 [arm]x, one body's term of DBD (57). Written column by column (no matmul):
