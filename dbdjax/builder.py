@@ -30,6 +30,7 @@ from dbdjax.model import (
     ContactGroup,
     Distances,
     ForceGroup,
+    IKTargets,
     Joints,
     Model,
     Options,
@@ -152,6 +153,18 @@ class _Link:
 
 
 @dataclasses.dataclass
+class _IKTarget:
+    """A point of a body pulled to a target the control moves (DBD 11 as a constraint)."""
+
+    body: int
+    point: np.ndarray  # world, at build time
+    stiffness: float  # inf: rigid
+    damping: float
+    max_force: float  # inf: unlimited
+    control: int  # the first of three entries
+
+
+@dataclasses.dataclass
 class _Shape:
     name: str
     kind: int
@@ -199,6 +212,7 @@ class ModelBuilder:
         self._control_names: list[str] = []
         self._control_ranges: list[tuple[float, float]] = []
         self._torques: list[_Torque] = []
+        self._ik_targets: list[_IKTarget] = []
 
     # ----------------------------------------------------------------------------- bodies
     def add_body(
@@ -631,6 +645,50 @@ class ModelBuilder:
         self._torques.append(_Torque(int(joint), gear, direction, record.kind == SLIDER, controls.start))
         return controls
 
+    def add_ik_target(
+        self,
+        body: int,
+        point: Sequence[float],
+        stiffness: float | None = None,
+        damping: float = 0.0,
+        max_force: float | None = None,
+        name: str | None = None,
+    ) -> slice:
+        """Inverse kinematics as a constraint (DBD 11, last paragraph): pull `point` (world, at
+        build time) of `body` to a target that the control vector moves, solved in the same sweeps
+        as the joints, contacts and forces (constraints/targets.py).
+
+        Three control entries: the target's offset (m, world) from `point`, so zero control holds
+        the point where it was built (as a drive's zero is its build pose). stiffness (N/m): None
+        for a rigid target (the point constraint of DBD (64)-(66) to a moving world point), else
+        an implicit spring of zero rest length (DBD 8.1) with damping (N s/m). max_force (N): the
+        largest pull, None for none; with a limit an unreachable target stretches the chain
+        toward it and no further, instead of pulling its joints apart. Not available with
+        solver="impulse". Returns the target's slice of the control vector.
+        """
+        label = f"IK target {len(self._ik_targets)}" + (f" ({name!r})" if name else "")
+        if not isinstance(body, (int, np.integer)) or isinstance(body, bool) or not 0 <= body < len(self._bodies):
+            raise ValueError(f"add_ik_target: {label}: body = {body!r} is not a body index (there are "
+                             f"{len(self._bodies)} bodies; a target pulls a body, not the world)")  # fmt: skip
+        point = _vector(point, 3, f"{label}: point")
+        if stiffness is None:
+            stiffness = math.inf
+        else:
+            stiffness = _scalar(stiffness, f"{label}: stiffness")
+            if not 0.0 < stiffness < math.inf:
+                raise ValueError(f"{label}: stiffness must be positive and finite (None for a rigid target), "
+                                 f"got {stiffness}")  # fmt: skip
+        damping = self._non_negative(damping, f"{label}: damping")
+        if max_force is None:
+            max_force = math.inf
+        else:
+            max_force = _scalar(max_force, f"{label}: max_force")
+            if not 0.0 < max_force < math.inf:
+                raise ValueError(f"{label}: max_force must be positive and finite (None for no limit), got {max_force}")
+        controls = self._new_controls(f"{name or label} target", 3)
+        self._ik_targets.append(_IKTarget(int(body), point, stiffness, damping, max_force, controls.start))
+        return controls
+
     def set_control_range(self, controls: slice | int, lower: float, upper: float) -> None:
         """Record the range [lower, upper] the control entries `controls` are meant for (MJCF's
         ctrlrange; `Model.control_range`). Informational: `step` does not clip."""
@@ -878,6 +936,9 @@ class ModelBuilder:
         if self._volumes:
             raise ValueError(f"finalize: volume 0 (over bodies {list(self._volumes[0][0])}): the impulse solver has "
                              "no volume constraint (DBD 10.2); use solver='dbd'")  # fmt: skip
+        if self._ik_targets:
+            raise ValueError(f"finalize: IK target 0 (on body {self._ik_targets[0].body}): the impulse solver has no "
+                             "IK target constraint; use solver='dbd'")  # fmt: skip
 
     def _resolve_bodies(self) -> tuple[list[_Body], list[tuple[np.ndarray, np.ndarray]]]:
         """Bodies with every mass and inertia filled in, and each shape's pose in its body's frame.
@@ -1076,6 +1137,8 @@ class ModelBuilder:
             torque_linear=StaticArray(np.asarray([t.linear for t in self._torques], dtype=bool)),
             control_range=StaticArray(np.reshape(np.asarray(self._control_ranges, dtype=np.float64), (-1, 2))),
             joint_passive_drive=StaticArray(np.asarray([j.passive_drive for j in js], dtype=bool)),
+            ik_target_bodies=body_table([(t.body, n) for t in self._ik_targets], 2),
+            ik_target_control=body_table([[t.control + k for k in range(3)] for t in self._ik_targets], 3),
         )
         contacts = len(structure.contact_groups)  # contact groups in colours of their own (colouring.py)
         contact_class = [0] * (len(structure.family_bodies()) - contacts) + [1] * contacts
@@ -1097,6 +1160,12 @@ class ModelBuilder:
             local_axis_a=table([host_math.rotate(frame(js[t.joint].body_a)[1], t.axis, inverse=True) for t in ts], 3),
             local_axis_b=table([host_math.rotate(frame(js[t.joint].body_b)[1], t.axis, inverse=True) for t in ts], 3),
         )
+        ik = self._ik_targets
+        ik_targets = IKTargets(
+            local_point=table([local_point(t.body, t.point) for t in ik], 3),
+            rest_target=table([t.point for t in ik], 3),
+            **{f: column(ik, f) for f in ("stiffness", "damping", "max_force")},
+        )
         return Model(bodies=bodies, joints=joints, springs=springs, distances=distances, ropes=ropes,
                      volumes=volumes, forces=force_params, shapes=shape_table, gravity=jnp.asarray(self.gravity),
-                     structure=structure, options=options, torques=torques)  # fmt: skip
+                     structure=structure, options=options, torques=torques, ik_targets=ik_targets)  # fmt: skip

@@ -1,11 +1,12 @@
-"""Quantities to check a simulation by: joint gaps, momentum, energy. Pure, batch-friendly."""
+"""Quantities to check a simulation by: joint gaps, IK target errors, momentum, energy. Pure,
+batch-friendly."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
 from dbdjax import math
-from dbdjax.constraints import rows
+from dbdjax.constraints import rows, targets
 from dbdjax.constraints.rows import BodyPair
 from dbdjax.model import PLANAR, SLIDER, Model, State
 
@@ -43,6 +44,19 @@ def joint_gaps(model: Model, state: State) -> jnp.ndarray:
     delta = delta - jnp.where(slider[:, None], math.dot(delta, axis)[..., None] * axis, 0.0)
     delta = jnp.where(planar[:, None], math.dot(delta, axis)[..., None] * axis, delta)
     return math.safe_norm(delta)
+
+
+def ik_target_errors(model: Model, state: State, control: jnp.ndarray | None = None) -> jnp.ndarray:
+    """Distance (m) from each IK target's point to where `control` puts the target, (..., T).
+
+    control: (num_controls,) as passed to `step` (None: zero offsets, the targets at rest)."""
+    ik = model.ik_targets
+    if ik is None or not len(model.structure.ik_target_bodies.array):
+        return jnp.zeros(state.pos.shape[:-2] + (0,), state.pos.dtype)
+    body = model.structure.ik_target_bodies.array[:, 0]
+    goal = targets.goals(model.structure, ik, control, state.pos.dtype)
+    point = state.pos[..., body, :] + math.quat_rotate(state.quat[..., body, :], ik.local_point)
+    return math.safe_norm(point - goal)
 
 
 def linear_momentum(model: Model, state: State) -> jnp.ndarray:

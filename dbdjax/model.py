@@ -164,6 +164,28 @@ Torques = _pytree(Torques)
 
 
 @dataclasses.dataclass(frozen=True)
+class IKTargets:
+    """Inverse kinematics as a constraint (DBD 11, last paragraph), T rows: a point fixed on a
+    body is pulled to a target position that the control vector moves, inside the same solve
+    as the joints, contacts and forces (`ModelBuilder.add_ik_target`).
+
+    local_point: (T, 3) the point in its body's frame. rest_target: (T, 3) m, world, where the
+    target is at zero control (the point at build time); the control adds a world offset (m).
+    stiffness: (T,) N/m, inf for a rigid target. damping: (T,) N s/m. max_force: (T,) N, the
+    largest pull (inf for none).
+    """
+
+    local_point: jnp.ndarray
+    rest_target: jnp.ndarray
+    stiffness: jnp.ndarray
+    damping: jnp.ndarray
+    max_force: jnp.ndarray
+
+
+IKTargets = _pytree(IKTargets)
+
+
+@dataclasses.dataclass(frozen=True)
 class Springs:
     """Linear springs/dampers between two body points (DBD 8.1), L rows.
 
@@ -351,6 +373,10 @@ class Structure:
     # (J,) bool: the joint's drive is a passive spring-damper toward the build pose with no control
     # entry (`ModelBuilder.add_joint_spring`, MJCF joint stiffness/damping). Empty: none.
     joint_passive_drive: StaticArray = StaticArray(np.zeros((0,), bool))
+    # IK targets (`IKTargets`): (T, 2) int, the body and the world (N); (T, 3) int, the control
+    # entries of each target's offset.
+    ik_target_bodies: StaticArray = StaticArray(np.zeros((0, 2), np.int32))
+    ik_target_control: StaticArray = StaticArray(np.zeros((0, 3), np.int32))
 
     @property
     def num_colours(self) -> int:
@@ -358,12 +384,14 @@ class Structure:
 
     def family_bodies(self) -> tuple[np.ndarray, ...]:
         """The bodies of every constraint node, one (M, S) table per family, in solver order:
-        joints, springs, distances, ropes, volumes, each force group, then each contact group."""
+        joints, springs, distances, ropes, volumes, each force group, the IK targets, then each
+        contact group."""
         joints = np.stack([self.joint_body_a.array, self.joint_body_b.array], axis=-1).reshape(-1, 2)
         fixed = (joints, self.spring_bodies.array, self.distance_bodies.array, self.rope_bodies.array,
                  self.volume_bodies.array)  # fmt: skip
         forces = tuple(group.bodies.array for group in self.force_groups)
-        return fixed + forces + tuple(group.bodies.array for group in self.contact_groups)
+        contacts = tuple(group.bodies.array for group in self.contact_groups)
+        return fixed + forces + (self.ik_target_bodies.array,) + contacts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -401,6 +429,7 @@ class Model:
     structure: Structure
     options: Options
     torques: Torques | None = None  # torque actuators (None: none)
+    ik_targets: IKTargets | None = None  # IK targets (None: none)
 
     @property
     def num_bodies(self) -> int:

@@ -17,7 +17,7 @@ import numpy as np
 from dbdjax import math
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import contacts as contact
-from dbdjax.constraints import forces, joints, links, multibody
+from dbdjax.constraints import forces, joints, links, multibody, targets
 from dbdjax.model import Model
 
 
@@ -70,6 +70,13 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         k = table.shape[1]
         project = functools.partial(_project_force_flat, group.function, h=h, k=k)
         result.append(Family(group.name, table, params, np.zeros(len(table), bool), project, 6 * k))
+    ik_table = tables[5 + len(structure.force_groups)]
+    if len(ik_table):
+        ik_params = (model.ik_targets, targets.goals(structure, model.ik_targets, control, dtype))
+    else:  # no targets: nothing to gather (model.ik_targets may be None)
+        ik_params = (None, jnp.zeros((0, 3), dtype))
+    result.append(Family("ik_targets", ik_table, ik_params, np.zeros(len(ik_table), bool),
+                         lambda p, _, bodies, lam: targets.project(p[0], p[1], bodies, lam, h), 3))  # fmt: skip
     compliance_h2 = model.options.contact_compliance / h**2
     for group, slots in zip(structure.contact_groups, contacts, strict=True):
         project = functools.partial(

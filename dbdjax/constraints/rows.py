@@ -328,6 +328,57 @@ def point_response(arm: jnp.ndarray, inv_mass: jnp.ndarray, inv_inertia: jnp.nda
     return jnp.swapaxes(columns, -1, -2)
 
 
+def point_spring(
+    pair: BodyPair,
+    arm_a: jnp.ndarray,
+    arm_b: jnp.ndarray,
+    error: jnp.ndarray,
+    multiplier: jnp.ndarray,
+    rule: Rule,
+    h: float,
+) -> tuple[BodyPair, jnp.ndarray]:
+    """A zero-length spring/damper between two points as one block of three rows: c = `error`
+    (3,) m = p_a - p_b, the spring rule of the module docstring in matrix form with the 3x3
+    effective inverse mass K of `point_block` ((57), (66)), and |lambda| <= bound (the force limit
+    times h^2, as the drive's (114)). A spring of infinite stiffness is the rigid `point_block`.
+
+    Written in compliance form, so that stiffness inf is exact: with s = k h^2, a = 1 / s (0 when
+    rigid) and r = nu h / s, d lambda = -xi (a 1 + (1 + r) K)^-1 (a lambda + c + r drift), which
+    is the rule's -xi (1 + (s + nu h) K)^-1 (lambda + s c + nu h drift) divided through by s.
+    Unlike a row along the normalised gap, nothing here is undefined where the points meet.
+    rule: a `spring` rule (relaxation, active, stiffness_h2, damping_h, bound). Returns the moved
+    pair and the new multiplier (3,) kg m.
+    """
+    eye = jnp.eye(3, dtype=error.dtype)
+    rigid = jnp.isinf(rule.stiffness_h2)
+    stiffness_h2 = jnp.where(rigid, 1.0, rule.stiffness_h2)
+    compliance = jnp.where(rigid, 0.0, 1.0 / stiffness_h2)
+    damping_ratio = jnp.where(rigid, 0.0, rule.damping_h / stiffness_h2)
+    inverse_mass = point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a) + point_response(
+        arm_b, pair.inv_mass_b, pair.inv_inertia_b
+    )
+    drift = h * (pair.vel_a + math.cross(pair.ang_vel_a, arm_a) - pair.vel_b - math.cross(pair.ang_vel_b, arm_b)) + (
+        pair.dx_a + math.cross(pair.dtheta_a, arm_a) - pair.dx_b - math.cross(pair.dtheta_b, arm_b)
+    )  # J (h V* + dX): how far the points moved apart this substep
+    system = compliance * eye + (1.0 + damping_ratio) * inverse_mass
+    residual = compliance * multiplier + error + damping_ratio * drift
+    determinant = math.dot(system[0], math.cross(system[1], system[2]))
+    solvable = rule.active & (determinant > 0.0)
+    candidate = multiplier - rule.relaxation * math.matvec(math.inverse3(jnp.where(solvable, system, eye)), residual)
+    direction, size = math.safe_normalize(candidate)
+    limited = jnp.isfinite(rule.bound)
+    bound = jnp.where(limited, rule.bound, 0.0)
+    candidate = jnp.where(limited & (size > bound), bound * direction, candidate)  # as (114)
+    step = jnp.where(solvable, candidate - multiplier, 0.0)
+    moved = pair._replace(
+        dx_a=pair.dx_a + pair.inv_mass_a * step,
+        dx_b=pair.dx_b - pair.inv_mass_b * step,
+        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, step)),
+        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, step)),
+    )
+    return moved, multiplier + step
+
+
 def point_block(
     pair: BodyPair,
     arm_a: jnp.ndarray,

@@ -567,6 +567,7 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
     ]  # fmt: skip
     force_tables = tables[5 : 5 + len(structure.force_groups)]
     result += [nothing(group.name, table) for group, table in zip(structure.force_groups, force_tables, strict=True)]
+    result.append(nothing("ik_targets", tables[5 + len(structure.force_groups)]))  # refused at finalize
     slow = 2.0 * math.safe_norm(model.gravity) * h  # as the DBD restitution pass: slower impacts do not bounce
     for group, slots in zip(structure.contact_groups, contacts, strict=True):
         prepare = functools.partial(prepare_contacts, h=h, beta=beta, compliance=options.contact_compliance, slow=slow)
