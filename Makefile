@@ -16,18 +16,19 @@ demo: $(STAMP)
 	$(BIN)/python examples/swinging_chain.py
 	$(BIN)/python examples/ragdoll_demo.py
 
-# The CI suite: everything but the tests marked slow (about 20 minutes on 2 cores).
+# The CI suite: everything but the tests marked slow, on two processes (pytest-xdist; one file per
+# process, so module fixtures compile once).
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -v --durations=15 -m "not slow"
+	$(BIN)/python -m pytest -v -n 2 --dist loadfile --durations=25 -m "not slow"
 
 # The long physics checks (10,000-step ragdoll, chain gaps over 5 s, stacks, training runs).
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -v --durations=15 -m slow
+	$(BIN)/python -m pytest -v -n 2 --dist loadfile --durations=25 -m slow
 
 test-all: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -v --durations=15
+	$(BIN)/python -m pytest -v -n 2 --dist loadfile --durations=25
 
 # Quick by default; `make bench FULL=1` for batches up to 4096 and 1000-step gradients.
 bench: $(STAMP)
