@@ -75,14 +75,14 @@ def main() -> None:
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
         "runs": [],
     }
+    out = args.out or Path(__file__).parent / "results" / "env_throughput.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
     for env_id in args.envs:
         for batch in args.batches:
             run = measure(env_id, batch, args.steps)
             print(json.dumps(run), flush=True)
             results["runs"].append(run)
-    out = args.out or Path(__file__).parent / "results" / "env_throughput.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=1) + "\n")
+            out.write_text(json.dumps(results, indent=1) + "\n")  # after every run: a long run keeps its rows
     print(f"wrote {out}")
 
 

@@ -1,6 +1,6 @@
 """Stable-Baselines3 PPO on `gymnasium.make("dbdjax/IKChainReach-v0")`: dbdjax as a plain Gymnasium env.
 
-    python -m dbdjax.training.sb3_ppo --timesteps 40960 --eval-every 10240 --seeds 0 1 2 \\
+    python -m dbdjax.training.sb3_ppo --timesteps 20480 --eval-every 10240 --seeds 0 1 2 \\
         --out benchmarks/results/sb3_ik_chain.json
 
 What a third-party Gymnasium client sees: SB3 wants numpy observations, so each `gym.make` env
@@ -115,7 +115,7 @@ def evaluate(model: PPO, episodes: int = 200, seed: int = 10_000, env_kwargs: di
 
 
 def run(
-    timesteps: int = 40_960,
+    timesteps: int = 20_480,
     seed: int = 0,
     n_envs: int = 4,
     episodes: int = 200,
@@ -125,6 +125,7 @@ def run(
     torch_threads: int = 1,
     progress_bar: bool = False,
     eval_every: int | None = None,
+    verbose: bool = False,
 ) -> dict[str, Any]:
     """Evaluate an untrained PPO, train it for `timesteps` env steps, evaluate it again.
 
@@ -132,9 +133,10 @@ def run(
     is called once per chunk and continues where it stopped; a chunk that is not a whole number of
     rollouts, n_steps x n_envs, is rounded up to one by SB3).
     Returns a dict with "before" and "after" (`evaluate` results on the same episodes), "curve"
-    (timesteps, success rate, median final distance after each chunk), "train_s" (wall-clock
-    seconds in `learn`, the first compilation of the env step included), the settings, and the
-    number of training episodes SB3's Monitor logged.
+    (timesteps, success rate, median final distance after each chunk), "train_s" and
+    "train_cpu_s" (wall-clock and process CPU seconds in `learn`, the first compilation of the env
+    step included), the settings, and the
+    number of training episodes SB3's Monitor logged. verbose: print each curve point.
     """
     torch.set_num_threads(torch_threads)  # the env's XLA threads share the same cores
     env_kwargs = ENV_KWARGS if env_kwargs is None else env_kwargs
@@ -142,13 +144,16 @@ def run(
     model = make_model(envs, seed, ppo_kwargs)
     before = evaluate(model, episodes, eval_seed, env_kwargs)
     chunk = eval_every or timesteps
-    train_s, curve = 0.0, []
+    train_s, train_cpu_s, curve = 0.0, 0.0, []
     while model.num_timesteps < timesteps:
-        started = time.perf_counter()
+        started, cpu_started = time.perf_counter(), time.process_time()
         model.learn(min(chunk, timesteps - model.num_timesteps), reset_num_timesteps=False, progress_bar=progress_bar)
         train_s += time.perf_counter() - started
+        train_cpu_s += time.process_time() - cpu_started
         after = evaluate(model, episodes, eval_seed, env_kwargs)
         curve.append([model.num_timesteps, after["success_rate"], after["final_distance_m"]["median"]])
+        if verbose:
+            print(f"seed {seed}: {curve[-1][0]} steps, {train_s:.0f} s, success {curve[-1][1]:.3f}", flush=True)
     monitor = [env.get_episode_rewards() for env in envs.envs]
     envs.close()
     return {
@@ -160,6 +165,7 @@ def run(
         "n_envs": n_envs,
         "torch_threads": torch_threads,
         "train_s": train_s,
+        "train_cpu_s": train_cpu_s,
         "train_env_steps_per_s": model.num_timesteps / train_s,
         "training_episodes": sum(len(rewards) for rewards in monitor),
         "before": before,
@@ -170,7 +176,7 @@ def run(
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--timesteps", type=int, default=40_960, help="env steps of PPO training")
+    parser.add_argument("--timesteps", type=int, default=20_480, help="env steps of PPO training")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds (one run each)")
     parser.add_argument("--n-envs", type=int, default=4, help="envs in SB3's DummyVecEnv")
     parser.add_argument("--episodes", type=int, default=200, help="evaluation episodes")
@@ -182,31 +188,30 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     args = parser.parse_args(argv)
     load_at_start = [round(x, 2) for x in os.getloadavg()]  # wall times depend on what else runs
-    runs = []
+    out = {
+        "command": " ".join(["python -m dbdjax.training.sb3_ppo", *(sys.argv[1:] if argv is None else argv)]),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "torch": torch.__version__,
+            "jax": jax.__version__,
+        },
+        "load_average_at_start": load_at_start,
+        "runs": [],
+    }
     for seed in args.seeds:
         result = run(args.timesteps, seed, args.n_envs, args.episodes, args.eval_seed, args.env_kwargs, None,
-                     args.torch_threads, args.progress, args.eval_every)  # fmt: skip
-        summary = {key: result[key] for key in ("seed", "train_s", "train_env_steps_per_s", "training_episodes")}
+                     args.torch_threads, args.progress, args.eval_every, verbose=True)  # fmt: skip
+        summary = {key: result[key] for key in ("seed", "train_s", "train_cpu_s", "training_episodes")}
         summary.update(before=result["before"]["success_rate"], after=result["after"]["success_rate"])
         print(json.dumps(summary), flush=True)
-        runs.append(result)
-    if args.out is not None:
-        out = {
-            "command": " ".join(["python -m dbdjax.training.sb3_ppo", *(sys.argv[1:] if argv is None else argv)]),
-            "machine": {
-                "platform": platform.platform(),
-                "processor": platform.processor() or platform.machine(),
-                "cpu_count": os.cpu_count(),
-                "torch": torch.__version__,
-                "jax": jax.__version__,
-            },
-            "load_average_at_start": load_at_start,
-            "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
-            "runs": runs,
-        }
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(out, indent=1) + "\n")
-        print(f"wrote {args.out}")
+        out["runs"].append(result)
+        out["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+        if args.out is not None:  # after every seed, so a long run keeps what it finished
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps(out, indent=1) + "\n")
+            print(f"wrote {args.out}", flush=True)
 
 
 if __name__ == "__main__":
