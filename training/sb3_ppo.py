@@ -19,7 +19,7 @@ An episode succeeds when `info["is_success"]` holds at its last step (the tip wi
 The task (`ENV_KWARGS`): the registered env with `num_links=2` and `success_distance=0.05`
 (5 cm): PPO from scratch on this CPU in a few minutes does not place the default 5-link chain's
 tip within 1 cm (that takes the IK expert, `dbdjax.envs.expert_action`); `--env-kwargs` changes it.
-Needs the `sb3` extra (torch 2.13.0 CPU first, then stable-baselines3; README "Training").
+Needs the `sb3` extra (torch 2.13.0 CPU first, then stable-baselines3; README "Stable-Baselines3").
 """
 
 from __future__ import annotations
