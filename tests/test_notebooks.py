@@ -13,6 +13,7 @@ NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 def test_the_notebooks_are_there():
     names = [path.name for path in NOTEBOOKS]
     assert "01_getting_started.ipynb" in names and "02_trajectory_optimisation.ipynb" in names
+    assert "04_benchmarks.ipynb" in names
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
