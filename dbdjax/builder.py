@@ -847,8 +847,6 @@ class ModelBuilder:
                 raise ValueError(f"finalize: {what} must be a positive integer, got {count!r}")
         if solver not in SOLVERS:
             raise ValueError(f"finalize: unknown solver {solver!r}; choose one of {SOLVERS}")
-        if solver == "impulse":
-            self._check_impulse_support()
         baumgarte = self._baumgarte("finalize: baumgarte", baumgarte)
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
@@ -862,15 +860,6 @@ class ModelBuilder:
             restitution_iterations=int(restitution_iterations), baumgarte=baumgarte,
         )  # fmt: skip
         return self._model(options)
-
-    def _check_impulse_support(self) -> None:
-        """Refuse, naming the element, what the impulse solver has no velocity rows for."""
-        if self._ropes:
-            raise ValueError(f"finalize: rope 0 (over bodies {list(self._ropes[0][0])}): the impulse solver has no "
-                             "rope constraint (DBD 10.1); use solver='dbd', or distances along the rope")  # fmt: skip
-        if self._volumes:
-            raise ValueError(f"finalize: volume 0 (over bodies {list(self._volumes[0][0])}): the impulse solver has "
-                             "no volume constraint (DBD 10.2); use solver='dbd'")  # fmt: skip
 
     def _resolve_bodies(self) -> tuple[list[_Body], list[tuple[np.ndarray, np.ndarray]]]:
         """Bodies with every mass and inertia filled in, and each shape's pose in its body's frame.

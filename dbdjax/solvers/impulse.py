@@ -35,7 +35,7 @@ def impulse_shapes(model: Model) -> list[tuple[int, int]]:
     """(M_f, m_f) of every family's impulses, in family order (the layout of State.impulses)."""
     structure = model.structure
     tables = structure.family_bodies()
-    per_node = [velocity.JOINT_IMPULSES, 1, 1, 0, 0] + [0] * len(structure.force_groups)
+    per_node = [velocity.JOINT_IMPULSES, 1, 1, 1, 1] + [0] * len(structure.force_groups)
     per_node += [velocity.CONTACT_IMPULSES_PER_POINT * group.num_points for group in structure.contact_groups]
     return [(len(table), size) for table, size in zip(tables, per_node, strict=True)]
 
