@@ -206,7 +206,7 @@ def test_resting_box_carries_its_weight_in_the_accumulated_normal_impulses():
     b.add_plane()
     model = b.finalize(dt=1 / 60, iterations=8, solver="impulse")
     final, _ = rollout(model, 60)
-    normal = final.impulses[-1].reshape(8, 3)[:, 0]  # the box-plane group: 8 corners x (n, t1, t2)
+    normal = final.impulses[-1].reshape(8, 4)[:, 0]  # the box-plane group: 8 corners x (n, friction (3,))
     np.testing.assert_allclose(float(jnp.sum(normal)), 3.0 * GRAVITY / 60, rtol=1e-3)
     assert abs(float(final.pos[0, 2]) - 0.1) < 1e-3
 

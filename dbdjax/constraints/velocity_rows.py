@@ -373,7 +373,10 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
 
 # ---------------------------------------------------------------------------------- contacts
 
-CONTACT_IMPULSES_PER_POINT = 3  # lambda_n, lambda_t1, lambda_t2
+# Kept between substeps per point: lambda_n and the friction impulse as a world vector, so that a
+# change of the tangent basis (any_perpendicular of a normal that turned) does not turn the warm
+# start with it. Inside a solve: (lambda_n, lambda_t1, lambda_t2).
+CONTACT_IMPULSES_PER_POINT = 4
 
 
 class ContactRows(NamedTuple):
@@ -414,8 +417,9 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
     the larger of that separation speed and e |v_n| for impacts faster than `slow` (m/s; v_n the
     normal speed before the solve). With contact compliance alpha > 0 the normal row is a spring
     of stiffness 1 / alpha. Friction: mu_d where the points were sliding at the start of the
-    substep, mu_s where they stuck (DBD 7.1). impulses: (3 P,) of the previous substep, kept where
-    the slot is still active. Returns (ContactRows, impulses, dv (2, 3), dw (2, 3)).
+    substep, mu_s where they stuck (DBD 7.1). impulses: (4 P,) of the previous substep (lambda_n,
+    world friction impulse), kept where the slot is still active; returned as (3 P,) along the
+    rows (n, t1, t2). Returns (ContactRows, impulses, dv (2, 3), dw (2, 3)).
     """
     pair = BodyPair.of(bodies)
     points = slots.active.shape[0]
@@ -448,12 +452,19 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
     rows = ContactRows(directions, angular_a, angular_b, turn_a, turn_b, tangent_coupling, normal_rows.mass,
                        normal_rows.mix, normal_bias, friction, active)  # fmt: skip
 
-    lam = jnp.where(active[:, None], impulses.reshape(points, 3), 0.0)
-    lam_n = jnp.maximum(lam[:, 0], 0.0)
-    lam_t = jax.vmap(_clamp_disc)(lam[:, 1:], friction * lam_n)
+    stored = jnp.where(active[:, None], impulses.reshape(points, CONTACT_IMPULSES_PER_POINT), 0.0)
+    lam_n = jnp.maximum(stored[:, 0], 0.0)
+    lam_t = jax.vmap(_clamp_disc)(jnp.sum(tangents * stored[:, None, 1:], axis=-1), friction * lam_n)
     lam = jnp.concatenate([lam_n[:, None], lam_t], axis=1)
     dv, dw = _warm(pair, [(Rows(directions, angular_a, angular_b, turn_a, turn_b, *(None,) * 5), lam.reshape(-1))])
     return rows, lam.reshape(-1), dv, dw
+
+
+def store_contacts(rows: ContactRows, impulses: jnp.ndarray) -> jnp.ndarray:
+    """(3 P,) impulses along (n, t1, t2) -> (4 P,) lambda_n and the world friction impulse."""
+    lam = impulses.reshape(-1, 3)
+    friction = jnp.sum(lam[:, 1:, None] * rows.directions[:, 1:], axis=1)
+    return jnp.concatenate([lam[:, :1], friction], axis=1).reshape(-1)
 
 
 def solve_contacts(rows: ContactRows, bodies: BodySet, impulses: jnp.ndarray):
@@ -552,7 +563,8 @@ class VelocityFamily(NamedTuple):
     bodies: (M, S) int. params, static: as `constraints.Family`. prepare(params, static, bodies,
     impulses) -> (rows, impulses, dv (S, 3), dw (S, 3)) for one node at the start of the substep.
     solve(rows, static, bodies, impulses) -> (dv (S, 3), dw (S, 3), impulses): one pass, in the
-    shape of `constraints.Family.project` (the solver vmaps both). num_impulses: per node.
+    shape of `constraints.Family.project` (the solver vmaps both). num_impulses: per node, as kept
+    in State.impulses. store(rows, impulses) -> what is kept of a solve's impulses, None for all.
     """
 
     name: str
@@ -562,6 +574,7 @@ class VelocityFamily(NamedTuple):
     prepare: Callable
     solve: Callable
     num_impulses: int
+    store: Callable | None = None
 
 
 def _nothing_to_prepare(params, static, bodies: BodySet, impulses):
@@ -617,5 +630,5 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         prepare = functools.partial(prepare_contacts, h=h, beta=beta, compliance=options.contact_compliance, slow=slow)
         result.append(VelocityFamily(group.name, group.bodies.array, slots, on_world(group.bodies.array), prepare,
                                      lambda r, _, bodies, lam: solve_contacts(r, bodies, lam),
-                                     CONTACT_IMPULSES_PER_POINT * group.num_points))  # fmt: skip
+                                     CONTACT_IMPULSES_PER_POINT * group.num_points, store_contacts))  # fmt: skip
     return result
