@@ -368,9 +368,9 @@ def plot(results: list[dict], path: pathlib.Path) -> None:
                 if not rows_:
                     continue
                 x = [1 / r["dt"] for r in rows_]
-                y = [r.get(metric, float("nan")) if not r["blew_up"] else float("nan") for r in rows_]
+                y = [r.get(metric, float("nan")) if not r.get("blew_up", True) else float("nan") for r in rows_]
                 axis.plot(x, y, linestyle=style, color=colour, marker="o", ms=3, label=f"{solver} {count} it")
-                blown = [1 / r["dt"] for r in rows_ if r["blew_up"]]
+                blown = [1 / r["dt"] for r in rows_ if r.get("blew_up")]
                 axis.plot(blown, [1.0] * len(blown), "x", color=colour, ms=8)
         axis.set_xscale("log", base=2)
         axis.set_yscale("log")
@@ -400,7 +400,11 @@ def main() -> None:
         for solver in ("dbd", "impulse"):
             for iterations in iteration_counts:
                 for dt in dts:
-                    result = run(name, solver, dt, iterations, cache)
+                    try:
+                        result = run(name, solver, dt, iterations, cache)
+                    except Exception as error:  # a long sweep keeps going; the error is in the JSON
+                        result = {"scene": name, "solver": solver, "dt": dt, "iterations": iterations,
+                                  "error": repr(error)}  # fmt: skip
                     results.append(result)
                     print(json.dumps(result), flush=True)
     stem = "solver_comparison"

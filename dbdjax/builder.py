@@ -930,12 +930,6 @@ class ModelBuilder:
 
     def _check_impulse_support(self) -> None:
         """Refuse, naming the element, what the impulse solver has no velocity rows for."""
-        if self._ropes:
-            raise ValueError(f"finalize: rope 0 (over bodies {list(self._ropes[0][0])}): the impulse solver has no "
-                             "rope constraint (DBD 10.1); use solver='dbd', or distances along the rope")  # fmt: skip
-        if self._volumes:
-            raise ValueError(f"finalize: volume 0 (over bodies {list(self._volumes[0][0])}): the impulse solver has "
-                             "no volume constraint (DBD 10.2); use solver='dbd'")  # fmt: skip
         if self._ik_targets:
             raise ValueError(f"finalize: IK target 0 (on body {self._ik_targets[0].body}): the impulse solver has no "
                              "IK target constraint; use solver='dbd'")  # fmt: skip

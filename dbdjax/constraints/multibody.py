@@ -31,8 +31,8 @@ def _relative_positions(bodies: BodySet) -> jnp.ndarray:
     return (bodies.origin - bodies.origin[0]) + (bodies.dx - bodies.dx[0])
 
 
-def project_rope(rope: Ropes, present: np.ndarray, bodies: BodySet, multiplier: jnp.ndarray):
-    """Total length c = sum_i |x_i - x_{i+1}| - L over the rope's nodes, DBD (118)-(121).
+def rope_error(rope: Ropes, present: np.ndarray, bodies: BodySet):
+    """(gradient (S, 3), error) of the total length c = sum_i |x_i - x_{i+1}| - L, DBD (118)-(121).
 
     present: (S,) bool, which node slots hold a body (ropes are padded to the longest). The
     gradient on node i is d_{i,i+1} - d_{i-1,i} (119), the unit segment directions, so a node
@@ -45,20 +45,31 @@ def project_rope(rope: Ropes, present: np.ndarray, bodies: BodySet, multiplier: 
     error = jnp.sum(jnp.where(segment_present, length, 0.0)) - rope.length
     zero = jnp.zeros((1, 3), unit.dtype)
     gradient = jnp.concatenate([unit, zero]) - jnp.concatenate([zero, unit])  # (119)
+    return gradient, error
+
+
+def project_rope(rope: Ropes, present: np.ndarray, bodies: BodySet, multiplier: jnp.ndarray):
+    """The rigid update of the rope's total length (`rope_error`). multiplier: (1,)."""
+    gradient, error = rope_error(rope, present, bodies)
     dx, dtheta, lam = _points_row(bodies, gradient, error, multiplier[0], rope.relaxation)
     return dx, dtheta, lam[None]
 
 
-def project_volume(volume: Volumes, bodies: BodySet, multiplier: jnp.ndarray):
-    """Signed volume c = d1 . (d2 x d3) - 6 V0 with d_i = x_i - x_0, DBD (122)-(124).
-
-    The gradient on x_i (i = 1, 2, 3) is twice the directed area of the opposite face (123), and
-    on x_0 minus their sum, so the update conserves linear momentum.
+def volume_error(volume: Volumes, bodies: BodySet):
+    """(gradient (4, 3), error) of the signed volume c = d1 . (d2 x d3) - 6 V0, d_i = x_i - x_0,
+    DBD (122)-(124). The gradient on x_i (i = 1, 2, 3) is twice the directed area of the opposite
+    face (123), and on x_0 minus their sum, so an update along it conserves linear momentum.
     """
     d = _relative_positions(bodies)
     d1, d2, d3 = d[1], d[2], d[3]
     areas = jnp.stack([math.cross(d2, d3), math.cross(d3, d1), math.cross(d1, d2)])
     gradient = jnp.concatenate([-jnp.sum(areas, axis=0, keepdims=True), areas])  # (123)
     error = math.dot(d1, areas[0]) - 6.0 * volume.rest_volume
+    return gradient, error
+
+
+def project_volume(volume: Volumes, bodies: BodySet, multiplier: jnp.ndarray):
+    """The rigid update of the tetrahedron's volume (`volume_error`). multiplier: (1,)."""
+    gradient, error = volume_error(volume, bodies)
     dx, dtheta, lam = _points_row(bodies, gradient, error, multiplier[0], volume.relaxation)
     return dx, dtheta, lam[None]

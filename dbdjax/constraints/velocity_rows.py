@@ -49,7 +49,7 @@ import numpy as np
 
 from dbdjax import math
 from dbdjax.collision import ContactSlots
-from dbdjax.constraints import joints, links
+from dbdjax.constraints import joints, links, multibody
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
 from dbdjax.model import Distances, Joints, Model, Springs
@@ -130,9 +130,9 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
     turn_b = math.matvec(pair.inv_inertia_b, angular_b)
     # K_ij = (1/m_a + 1/m_b) l_i . l_j + g_a,i . I_a^-1 g_a,j + g_b,i . I_b^-1 g_b,j
     coupling = (
-        (pair.inv_mass_a + pair.inv_mass_b) * jnp.einsum("ik,jk->ij", linear, linear)
-        + jnp.einsum("ik,jk->ij", angular_a, turn_a)
-        + jnp.einsum("ik,jk->ij", angular_b, turn_b)
+        (pair.inv_mass_a + pair.inv_mass_b) * _row_products(linear, linear)
+        + _row_products(angular_a, turn_a)
+        + _row_products(angular_b, turn_b)
     )
     eye = jnp.eye(3, dtype=coupling.dtype)
     if softness is None:
@@ -142,13 +142,24 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
         solvable = active & (determinant > 0.0)  # singular only when neither side can move
         mass = jnp.where(solvable, math.inverse3(jnp.where(solvable, coupling, eye)), 0.0)
         if projector is not None:
-            mass = projector @ mass @ projector
+            mass = _matmul(_matmul(projector, mass), projector)
         mix = jnp.zeros_like(mass)
     else:
         mix = math.inverse3(eye + softness * coupling)
         mass = jnp.where(active, softness * mix, 0.0)
         mix = jnp.where(active, mix, 0.0)
     return Block(linear, angular_a, angular_b, turn_a, turn_b, mass, mix, bias, jnp.asarray(bound, coupling.dtype))
+
+
+def _row_products(rows_1, rows_2):
+    """(..., K, K) dot products of every row of rows_1 (..., K, 3) with every row of rows_2, written
+    elementwise: a batched matrix product compiles to far more code on CPU than these sums."""
+    return jnp.sum(rows_1[..., :, None, :] * rows_2[..., None, :, :], axis=-1)
+
+
+def _matmul(a, b):
+    """a @ b for (3, 3) matrices, elementwise (see `_row_products`)."""
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
 def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):
@@ -160,12 +171,12 @@ def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):
 
 def _push(pair: BodyPair, linear, turn_a, turn_b, impulse) -> BodyPair:
     """Apply impulses (K,) along rows (K, 3): M^-1 J^T lambda, +b and -a (SI (23))."""
-    push = impulse @ linear
+    push = jnp.sum(impulse[:, None] * linear, axis=0)
     return pair._replace(
         dx_a=pair.dx_a - pair.inv_mass_a * push,
         dx_b=pair.dx_b + pair.inv_mass_b * push,
-        dtheta_a=pair.dtheta_a - impulse @ turn_a,
-        dtheta_b=pair.dtheta_b + impulse @ turn_b,
+        dtheta_a=pair.dtheta_a - jnp.sum(impulse[:, None] * turn_a, axis=0),
+        dtheta_b=pair.dtheta_b + jnp.sum(impulse[:, None] * turn_b, axis=0),
     )
 
 
@@ -362,7 +373,10 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
 
 # ---------------------------------------------------------------------------------- contacts
 
-CONTACT_IMPULSES_PER_POINT = 3  # lambda_n, lambda_t1, lambda_t2
+# Kept between substeps per point: lambda_n and the friction impulse as a world vector, so that a
+# change of the tangent basis (any_perpendicular of a normal that turned) does not turn the warm
+# start with it. Inside a solve: (lambda_n, lambda_t1, lambda_t2).
+CONTACT_IMPULSES_PER_POINT = 4
 
 
 class ContactRows(NamedTuple):
@@ -403,8 +417,9 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
     the larger of that separation speed and e |v_n| for impacts faster than `slow` (m/s; v_n the
     normal speed before the solve). With contact compliance alpha > 0 the normal row is a spring
     of stiffness 1 / alpha. Friction: mu_d where the points were sliding at the start of the
-    substep, mu_s where they stuck (DBD 7.1). impulses: (3 P,) of the previous substep, kept where
-    the slot is still active. Returns (ContactRows, impulses, dv (2, 3), dw (2, 3)).
+    substep, mu_s where they stuck (DBD 7.1). impulses: (4 P,) of the previous substep (lambda_n,
+    world friction impulse), kept where the slot is still active; returned as (3 P,) along the
+    rows (n, t1, t2). Returns (ContactRows, impulses, dv (2, 3), dw (2, 3)).
     """
     pair = BodyPair.of(bodies)
     points = slots.active.shape[0]
@@ -418,9 +433,9 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
     inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, 1.0)  # (P, 3), SI (34)-(36)
     tangents = directions[:, 1:]
     tangent_coupling = (
-        (pair.inv_mass_a + pair.inv_mass_b) * jnp.einsum("pik,pjk->pij", tangents, tangents)
-        + jnp.einsum("pik,pjk->pij", angular_a[:, 1:], turn_a[:, 1:])
-        + jnp.einsum("pik,pjk->pij", angular_b[:, 1:], turn_b[:, 1:])
+        (pair.inv_mass_a + pair.inv_mass_b) * _row_products(tangents, tangents)
+        + _row_products(angular_a[:, 1:], turn_a[:, 1:])
+        + _row_products(angular_b[:, 1:], turn_b[:, 1:])
     )
     separation = -math.dot(delta, normal)  # SI (25) at the start pose
     active = slots.active & (inverse_mass[:, 0] > 0.0)
@@ -437,12 +452,19 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
     rows = ContactRows(directions, angular_a, angular_b, turn_a, turn_b, tangent_coupling, normal_rows.mass,
                        normal_rows.mix, normal_bias, friction, active)  # fmt: skip
 
-    lam = jnp.where(active[:, None], impulses.reshape(points, 3), 0.0)
-    lam_n = jnp.maximum(lam[:, 0], 0.0)
-    lam_t = jax.vmap(_clamp_disc)(lam[:, 1:], friction * lam_n)
+    stored = jnp.where(active[:, None], impulses.reshape(points, CONTACT_IMPULSES_PER_POINT), 0.0)
+    lam_n = jnp.maximum(stored[:, 0], 0.0)
+    lam_t = jax.vmap(_clamp_disc)(jnp.sum(tangents * stored[:, None, 1:], axis=-1), friction * lam_n)
     lam = jnp.concatenate([lam_n[:, None], lam_t], axis=1)
     dv, dw = _warm(pair, [(Rows(directions, angular_a, angular_b, turn_a, turn_b, *(None,) * 5), lam.reshape(-1))])
     return rows, lam.reshape(-1), dv, dw
+
+
+def store_contacts(rows: ContactRows, impulses: jnp.ndarray) -> jnp.ndarray:
+    """(3 P,) impulses along (n, t1, t2) -> (4 P,) lambda_n and the world friction impulse."""
+    lam = impulses.reshape(-1, 3)
+    friction = jnp.sum(lam[:, 1:, None] * rows.directions[:, 1:], axis=1)
+    return jnp.concatenate([lam[:, :1], friction], axis=1).reshape(-1)
 
 
 def solve_contacts(rows: ContactRows, bodies: BodySet, impulses: jnp.ndarray):
@@ -458,8 +480,8 @@ def solve_contacts(rows: ContactRows, bodies: BodySet, impulses: jnp.ndarray):
     lam = impulses.reshape(points, 3)
     for i in range(points):  # P <= 8, static: each point sees the previous points' impulses
         slip = _relative_speed(pair, rows.directions[i, 1:], rows.angular_a[i, 1:], rows.angular_b[i, 1:])
-        squared = slip @ slip
-        along = slip @ (rows.tangent_coupling[i] @ slip)
+        squared = jnp.sum(slip * slip)
+        along = jnp.sum(slip * jnp.sum(rows.tangent_coupling[i] * slip[None, :], axis=-1))
         ok = along > 1e-30 * jnp.maximum(squared, 1e-30)
         candidate = lam[i, 1:] - jnp.where(ok, squared / jnp.where(ok, along, 1.0), 0.0) * slip
         candidate = _clamp_disc(candidate, rows.friction[i] * lam[i, 0])
@@ -501,6 +523,37 @@ def solve_link(rows: Rows, bodies: BodySet, impulses: jnp.ndarray):
     return *pair.displacements(), impulses
 
 
+# ------------------------------------------------------------------------------ many bodies
+
+
+class PointsRow(NamedTuple):
+    """One row on the centres of mass of S bodies (a rope's length, a tetrahedron's volume):
+    J v = sum_i gradient_i . v_i. gradient: (S, 3). mass: () 1 / K. bias: ()."""
+
+    gradient: jnp.ndarray
+    mass: jnp.ndarray
+    bias: jnp.ndarray
+
+
+def prepare_points(error_of: Callable, params, static, bodies: BodySet, impulses: jnp.ndarray, h: float, beta: float):
+    """The rigid row of an S-body error (DBD 10, multibody.rope_error / volume_error) at the start
+    pose: K = sum_i |g_i|^2 / m_i, Baumgarte bias (SI (17)), warm start. impulses: (1,)."""
+    gradient, error = error_of(params, static, bodies)
+    inverse_mass = jnp.sum(bodies.inv_mass * math.dot(gradient, gradient))
+    solvable = inverse_mass > 0.0
+    mass = jnp.where(solvable, 1.0 / jnp.where(solvable, inverse_mass, 1.0), 0.0)
+    dv = (bodies.inv_mass * impulses[0])[:, None] * gradient
+    return PointsRow(gradient, mass, baumgarte_bias(error, beta, h)), impulses, dv, jnp.zeros_like(dv)
+
+
+def solve_points(rows: PointsRow, static, bodies: BodySet, impulses: jnp.ndarray):
+    """One update of an S-body row: d lambda = -(J v + b) / K, dv_i = g_i d lambda / m_i."""
+    speed = jnp.sum(math.dot(rows.gradient, bodies.vel + bodies.dx))
+    step = -rows.mass * (speed + rows.bias)
+    dv = bodies.dx + (bodies.inv_mass * step)[:, None] * rows.gradient
+    return dv, bodies.dtheta, impulses + step
+
+
 # ------------------------------------------------------------------------------------ families
 
 
@@ -510,7 +563,8 @@ class VelocityFamily(NamedTuple):
     bodies: (M, S) int. params, static: as `constraints.Family`. prepare(params, static, bodies,
     impulses) -> (rows, impulses, dv (S, 3), dw (S, 3)) for one node at the start of the substep.
     solve(rows, static, bodies, impulses) -> (dv (S, 3), dw (S, 3), impulses): one pass, in the
-    shape of `constraints.Family.project` (the solver vmaps both). num_impulses: per node.
+    shape of `constraints.Family.project` (the solver vmaps both). num_impulses: per node, as kept
+    in State.impulses. store(rows, impulses) -> what is kept of a solve's impulses, None for all.
     """
 
     name: str
@@ -520,6 +574,7 @@ class VelocityFamily(NamedTuple):
     prepare: Callable
     solve: Callable
     num_impulses: int
+    store: Callable | None = None
 
 
 def _nothing_to_prepare(params, static, bodies: BodySet, impulses):
@@ -535,7 +590,7 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
              dtype) -> list[VelocityFamily]:  # fmt: skip
     """Every constraint family of `model` as velocity rows, with this substep's control and contact
     slots. User forces have no rows here (the impulse solver applies them before the solve, SI
-    (12)); ropes and volumes are refused at finalize. Their entries keep the family order."""
+    (12)); their entries keep the family order."""
     structure, options = model.structure, model.options
     tables = structure.family_bodies()
     world = structure.num_bodies
@@ -551,8 +606,8 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         return VelocityFamily(name, table, params, on_world(table), prepare,
                               lambda r, _, bodies, lam: solve_link(r, bodies, lam), 1)  # fmt: skip
 
-    def nothing(name, table, params=None):
-        return VelocityFamily(name, table, params, None, _nothing_to_prepare, _nothing_to_solve, 0)
+    def nothing(name, table):
+        return VelocityFamily(name, table, None, None, _nothing_to_prepare, _nothing_to_solve, 0)
 
     result = [
         VelocityFamily(
@@ -562,8 +617,11 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         ),
         link_family("springs", tables[1], model.springs, spring=True),
         link_family("distances", tables[2], model.distances, spring=False),
-        nothing("ropes", tables[3]),
-        nothing("volumes", tables[4]),
+        VelocityFamily("ropes", tables[3], model.ropes, ~on_world(tables[3]),
+                       functools.partial(prepare_points, multibody.rope_error, h=h, beta=beta), solve_points, 1),
+        VelocityFamily("volumes", tables[4], model.volumes, np.zeros(len(tables[4]), bool),
+                       functools.partial(prepare_points, lambda p, _, bodies: multibody.volume_error(p, bodies), h=h,
+                                         beta=beta), solve_points, 1),
     ]  # fmt: skip
     force_tables = tables[5 : 5 + len(structure.force_groups)]
     result += [nothing(group.name, table) for group, table in zip(structure.force_groups, force_tables, strict=True)]
@@ -573,5 +631,5 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         prepare = functools.partial(prepare_contacts, h=h, beta=beta, compliance=options.contact_compliance, slow=slow)
         result.append(VelocityFamily(group.name, group.bodies.array, slots, on_world(group.bodies.array), prepare,
                                      lambda r, _, bodies, lam: solve_contacts(r, bodies, lam),
-                                     CONTACT_IMPULSES_PER_POINT * group.num_points))  # fmt: skip
+                                     CONTACT_IMPULSES_PER_POINT * group.num_points, store_contacts))  # fmt: skip
     return result

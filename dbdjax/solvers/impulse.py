@@ -35,7 +35,7 @@ def impulse_shapes(model: Model) -> list[tuple[int, int]]:
     """(M_f, m_f) of every family's impulses, in family order (the layout of State.impulses)."""
     structure = model.structure
     tables = structure.family_bodies()
-    per_node = [velocity.JOINT_IMPULSES, 1, 1, 0, 0] + [0] * len(structure.force_groups) + [0]  # + IK targets
+    per_node = [velocity.JOINT_IMPULSES, 1, 1, 1, 1] + [0] * len(structure.force_groups) + [0]  # + IK targets
     per_node += [velocity.CONTACT_IMPULSES_PER_POINT * group.num_points for group in structure.contact_groups]
     return [(len(table), size) for table, size in zip(tables, per_node, strict=True)]
 
@@ -93,7 +93,8 @@ def solve(
     table = dbd.body_table(model, start, h)
     prepared, impulses = [], []
     warm_dv = warm_dw = jnp.zeros((n + 1, 3), dtype)
-    for family, lam in zip(velocity.families(model, control, contacts, h, dtype), stored, strict=True):
+    families = velocity.families(model, control, contacts, h, dtype)
+    for family, lam in zip(families, stored, strict=True):
         lam = jnp.asarray(lam, dtype)
         if len(family.bodies):
             bodies = jax.tree.map(lambda column, f=family: column[f.bodies], table)  # (M, S, ...)
@@ -113,6 +114,9 @@ def solve(
         dv, dw, impulses = dbd.jacobi(prepared, table, options.iterations, impulses)
     else:
         dv, dw, impulses = dbd.gauss_seidel(structure.colours, prepared, table, options.iterations, impulses)
+    for f, family in enumerate(families):  # what the next substep starts from
+        if family.store is not None and len(family.bodies):
+            impulses[f] = jax.vmap(family.store)(prepared[f].params, impulses[f])
     return dv[:n], dw[:n], tuple(impulses)
 
 
