@@ -663,8 +663,10 @@ class ModelBuilder:
         for a rigid target (the point constraint of DBD (64)-(66) to a moving world point), else
         an implicit spring of zero rest length (DBD 8.1) with damping (N s/m). max_force (N): the
         largest pull, None for none; with a limit an unreachable target stretches the chain
-        toward it and no further, instead of pulling its joints apart. Not available with
-        solver="impulse". Returns the target's slice of the control vector.
+        toward it and no further, instead of pulling its joints apart (a soft target pulls along
+        the line to its goal; a rigid one spends its limit where the chain resists most, along a
+        straight chain, and turns toward the goal slowly). Not available with solver="impulse".
+        Returns the target's slice of the control vector.
         """
         label = f"IK target {len(self._ik_targets)}" + (f" ({name!r})" if name else "")
         if not isinstance(body, (int, np.integer)) or isinstance(body, bool) or not 0 <= body < len(self._bodies):

@@ -239,3 +239,26 @@ def test_gradients_through_contact_are_finite(scene, float64):
     grads = jax.jit(jax.grad(loss, argnums=(0, 1)))(model, start)
     for leaf in jax.tree.leaves(grads):
         assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+def test_gradient_of_a_capsule_lying_still_on_the_floor_is_finite_in_float32(solver):
+    """A capsule lying on the plane, touching it along its length: its two contact points do not
+    slip, and the friction step's effective mass |s|^2 / (s . W s) had a float32 gradient that
+    divided by an underflowed (s . W s)^2: NaN in the gradient of every model parameter (found
+    as non-finite policy gradients through the ragdoll, whose limbs are capsules)."""
+    b = dbd.ModelBuilder()
+    body = b.add_body(pos=(0.0, 0.0, 0.1), mass=1.0, inertia=(0.1, 0.1, 0.05))
+    b.add_capsule(body, 0.1, 0.3, quat=(np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0))  # along y, on the floor
+    b.add_plane()
+    model = b.finalize(dt=1 / 60, substeps=2, iterations=4, solver=solver)
+    start = dbd.init(model)
+    assert start.pos.dtype == jnp.float32
+
+    def loss(model):
+        final = dbd.step(model, start)
+        return jnp.sum(final.pos**2) + jnp.sum(final.vel**2) + jnp.sum(final.ang_vel**2)
+
+    grads = jax.jit(jax.grad(loss))(model)
+    for path, leaf in jax.tree_util.tree_leaves_with_path(grads):
+        assert np.all(np.isfinite(np.asarray(leaf))), jax.tree_util.keystr(path)

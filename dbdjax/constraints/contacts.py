@@ -123,10 +123,7 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
         # (90)-(92): a step along the slip direction s with the effective mass along s. (A full
         # 2 x 2 solve would converge to friction along B^-1 slip, not against the slip: a box
         # sliding on its corners would feel ~6% less friction than mu N.)
-        squared = slip @ slip
-        along = slip @ (blocks[i, 1:, i, 1:] @ slip)
-        ok = along > 1e-30 * jnp.maximum(squared, 1e-30)
-        kappa = total[1:] - jnp.where(ok, squared / jnp.where(ok, along, 1.0), 0.0) * slip
+        kappa = total[1:] - row.mass_along(slip, blocks[i, 1:, i, 1:]) * slip
         kappa_direction, kappa_size = math.safe_normalize(jnp.concatenate([kappa, jnp.zeros(1, kappa.dtype)]))
         bound = jnp.where(slots.sliding[i], slots.dynamic_friction, slots.friction) * normal
         kappa = jnp.where(kappa_size > bound, bound * kappa_direction[:2], kappa)  # (93)

@@ -176,6 +176,18 @@ def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
     return jnp.where(solvable, step, 0.0)
 
 
+def mass_along(vector: jnp.ndarray, inverse_mass: jnp.ndarray) -> jnp.ndarray:
+    """1 / (u . W u), u the unit direction of `vector` (2,) and W (2, 2) an inverse mass: the
+    effective mass a friction step along the slip uses (DBD (90)-(92), SI (31)); 0 where the
+    vector or W u vanishes. Written with the unit direction because |s|^2 / (s . W s), equal in
+    value, has a gradient that divides by (s . W s)^2, which underflows in float32 as s -> 0
+    (a capsule lying still on the floor gave NaN gradients)."""
+    unit, _ = math.safe_normalize(jnp.concatenate([vector, jnp.zeros(1, vector.dtype)]))
+    along = unit[:2] @ (inverse_mass @ unit[:2])
+    ok = along > 0.0
+    return jnp.where(ok, 1.0 / jnp.where(ok, along, 1.0), 0.0)
+
+
 def row_inverse_mass(pair: BodyPair, angular_a, angular_b, linear_squared=None):
     """w = J M~^-1 J^T of one row (DBD (51), (57); SI (34), (113)): (w, I_a^-1 angular_a, I_b^-1 angular_b).
 

@@ -480,10 +480,7 @@ def solve_contacts(rows: ContactRows, bodies: BodySet, impulses: jnp.ndarray):
     lam = impulses.reshape(points, 3)
     for i in range(points):  # P <= 8, static: each point sees the previous points' impulses
         slip = _relative_speed(pair, rows.directions[i, 1:], rows.angular_a[i, 1:], rows.angular_b[i, 1:])
-        squared = jnp.sum(slip * slip)
-        along = jnp.sum(slip * jnp.sum(rows.tangent_coupling[i] * slip[None, :], axis=-1))
-        ok = along > 1e-30 * jnp.maximum(squared, 1e-30)
-        candidate = lam[i, 1:] - jnp.where(ok, squared / jnp.where(ok, along, 1.0), 0.0) * slip
+        candidate = lam[i, 1:] - row.mass_along(slip, rows.tangent_coupling[i]) * slip
         candidate = _clamp_disc(candidate, rows.friction[i] * lam[i, 0])
         step = jnp.where(rows.active[i], candidate - lam[i, 1:], 0.0)
         pair = _push(pair, rows.directions[i, 1:], rows.turn_a[i, 1:], rows.turn_b[i, 1:], step)
