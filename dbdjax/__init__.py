@@ -8,7 +8,7 @@ model = b.finalize(dt=1 / 60)
 state = dbd.step(model, dbd.init(model))
 """
 
-from dbdjax import diagnostics, math
+from dbdjax import _layout, diagnostics, math, render, sharding
 from dbdjax.builder import ModelBuilder
 from dbdjax.mjcf import load_mjcf
 from dbdjax.model import WORLD, Model, State
@@ -24,7 +24,11 @@ __all__ = [
     "is_finite",
     "load_mjcf",
     "math",
+    "render",
     "rollout",
+    "sharding",
     "step",
 ]
 __version__ = "0.1.0"
+
+_layout.map_source_folders()

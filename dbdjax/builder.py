@@ -44,8 +44,8 @@ from dbdjax.model import (
     Volumes,
 )
 
-SOLVERS = ("dbd",)
-PLANNED_SOLVERS = ("impulse",)
+SOLVERS = ("dbd", "impulse")
+INITIAL_GUESSES = ("tree", "zero")
 
 
 def _vector(value, size: int, what: str) -> np.ndarray:
@@ -133,6 +133,7 @@ class _Joint:
     axis_stiffness: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     axis_damping: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     armature: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # per degree of freedom
+    baumgarte: float | None = None  # beta of SI (17) for the impulse solver; None: finalize's
 
     @property
     def num_axes(self) -> int:
@@ -374,6 +375,7 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Ball-and-socket joint at world point `anchor` (DBD section 5); returns its index.
 
@@ -381,6 +383,9 @@ class ModelBuilder:
         the one fixed in body b (DBD (81)-(83)). twist_limits: (lower, upper) rad in [-pi, pi]
         of the rotation of b about the twist axis. twist_axis: world direction at build time;
         by default the direction from the anchor to body b's centre of mass (the bone).
+        relaxation, regularization: xi and alpha of the DBD solver (DBD (46)-(47)). baumgarte:
+        beta of SI (17) for the impulse solver (None: finalize's `baumgarte`); every joint takes
+        these three.
         """
         label = self._joint_label("ball", name)
         anchor = _vector(anchor, 3, f"{label}: anchor")
@@ -397,7 +402,7 @@ class ModelBuilder:
         lower, upper = self._limits(label, twist_limits, angular=True)
         return self._add_joint(
             label, name, BALL, body_a, body_b, anchor, axis, lower, upper,
-            twist_limits is not None, cone, cone_limit is not None, relaxation, regularization,
+            twist_limits is not None, cone, cone_limit is not None, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def add_hinge_joint(
@@ -410,9 +415,11 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Hinge about world `axis` through `anchor` (DBD 6, SI 2.4); limits (rad) in [-pi, pi]."""
-        return self._add_axis_joint(HINGE, body_a, body_b, anchor, axis, limits, relaxation, regularization, name)
+        return self._add_axis_joint(HINGE, body_a, body_b, anchor, axis, limits, relaxation, regularization, name,
+                                    baumgarte)  # fmt: skip
 
     def add_slider_joint(
         self,
@@ -424,11 +431,14 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Slider (prismatic) along world `axis` (SI 2.3); limits (m) on the travel of b from a."""
-        return self._add_axis_joint(SLIDER, body_a, body_b, anchor, axis, limits, relaxation, regularization, name)
+        return self._add_axis_joint(SLIDER, body_a, body_b, anchor, axis, limits, relaxation, regularization, name,
+                                    baumgarte)  # fmt: skip
 
-    def _add_axis_joint(self, kind, body_a, body_b, anchor, axis, limits, relaxation, regularization, name) -> int:
+    def _add_axis_joint(self, kind, body_a, body_b, anchor, axis, limits, relaxation, regularization, name,
+                        baumgarte=None) -> int:  # fmt: skip
         """Hinge or slider: a joint defined by an anchor and one axis, with optional limits."""
         label = self._joint_label("hinge" if kind == HINGE else "slider", name)
         anchor = _vector(anchor, 3, f"{label}: anchor")
@@ -437,7 +447,7 @@ class ModelBuilder:
         lower, upper = self._limits(label, limits, angular=kind == HINGE)
         return self._add_joint(
             label, name, kind, body_a, body_b, anchor, axis, lower, upper,
-            limits is not None, math.pi, False, relaxation, regularization,
+            limits is not None, math.pi, False, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def add_fixed_joint(
@@ -448,6 +458,7 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Weld b to a at world `anchor` (SI 2.5): no relative motion at all."""
         label = self._joint_label("fixed", name)
@@ -455,7 +466,7 @@ class ModelBuilder:
         self._check_bodies(label, body_a, body_b)
         return self._add_joint(
             label, name, FIXED, body_a, body_b, anchor, np.array([0.0, 0.0, 1.0]), 0.0, 0.0,
-            False, math.pi, False, relaxation, regularization,
+            False, math.pi, False, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def add_planar_joint(
@@ -467,6 +478,7 @@ class ModelBuilder:
         relaxation: float = 1.0,
         regularization: float = 0.0,
         name: str | None = None,
+        baumgarte: float | None = None,
     ) -> int:
         """Planar joint: b translates in the plane through world `anchor` normal to `normal` and
         rotates about `normal` only (3 degrees of freedom; MJCF's slide-slide-hinge root of a 2-D
@@ -478,7 +490,7 @@ class ModelBuilder:
         self._check_bodies(label, body_a, body_b)
         return self._add_joint(
             label, name, PLANAR, body_a, body_b, anchor, normal, 0.0, 0.0,
-            False, math.pi, False, relaxation, regularization,
+            False, math.pi, False, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
     def add_universal_joint(
@@ -593,8 +605,10 @@ class ModelBuilder:
         return lower, upper
 
     def _add_joint(self, label, name, kind, body_a, body_b, anchor, axis, lower, upper,
-                   has_limits, cone, has_cone, relaxation, regularization) -> int:  # fmt: skip
+                   has_limits, cone, has_cone, relaxation, regularization, baumgarte=None) -> int:  # fmt: skip
         relaxation = self._relaxation(label, relaxation)
+        if baumgarte is not None:
+            baumgarte = self._baumgarte(f"{label}: baumgarte", baumgarte)
         regularization = _scalar(regularization, f"{label}: regularization")
         if regularization < 0.0:
             raise ValueError(f"{label}: regularization must be >= 0, got {regularization}")
@@ -613,6 +627,7 @@ class ModelBuilder:
                 has_cone,
                 relaxation,
                 regularization,
+                baumgarte=baumgarte,
             )  # fmt: skip
         )
         return len(self._joints) - 1
@@ -861,6 +876,14 @@ class ModelBuilder:
                      self._relaxation(label, relaxation))  # fmt: skip
 
     @staticmethod
+    def _baumgarte(what: str, value) -> float:
+        beta = _scalar(value, what)
+        if not 0.0 <= beta <= 1.0:
+            raise ValueError(f"{what} must be in [0, 1] (SI (17): the fraction of the error removed per step), "
+                             f"got {beta}")  # fmt: skip
+        return beta
+
+    @staticmethod
     def _relaxation(label: str, relaxation) -> float:
         relaxation = _scalar(relaxation, f"{label}: relaxation")
         if not 0.0 < relaxation < 2.0:
@@ -961,6 +984,8 @@ class ModelBuilder:
         contact_margin: float = 0.01,
         contact_compliance: float = 0.0,
         restitution_iterations: int = 2,
+        initial_guess: str = "zero",
+        baumgarte: float = 0.2,
     ) -> Model:
         """Freeze the description into a `Model` for `init`, `step` and `rollout`.
 
@@ -973,6 +998,13 @@ class ModelBuilder:
         only push once they touch). contact_compliance: m/N, 0 for rigid contacts; a small value
         (1e-6 .. 1e-4) makes contact a stiff spring, whose gradients are smoother for trajectory
         optimisation. restitution_iterations: sweeps of the velocity pass (restitution).
+        solver: "dbd" (DBD Algorithm 1, positions) or "impulse" (SI: sequential impulses on the
+        velocities with Baumgarte bias, semi-implicit Euler; solvers/impulse.py). baumgarte: beta
+        of SI (17) for the impulse solver, the share of a position error its bias removes per
+        substep (contacts, links, and joints that were not given their own).
+        initial_guess: where each substep's sweeps start. "zero" (default): dX = 0 as in DBD Algorithm 1;
+          "tree": the exact solution of the linearised point constraints of the joint tree
+          (solvers/tree.py), which long chains need to hold their tension.
         """
         dt = _scalar(dt, "finalize: dt")
         if dt <= 0.0:
@@ -982,9 +1014,12 @@ class ModelBuilder:
             if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
                 raise ValueError(f"finalize: {what} must be a positive integer, got {count!r}")
         if solver not in SOLVERS:
-            if solver in PLANNED_SOLVERS:
-                raise ValueError(f"finalize: solver {solver!r} is not available yet; use 'dbd'")
             raise ValueError(f"finalize: unknown solver {solver!r}; choose one of {SOLVERS}")
+        if initial_guess not in INITIAL_GUESSES:
+            raise ValueError(f"finalize: unknown initial_guess {initial_guess!r}; choose one of {INITIAL_GUESSES}")
+        if solver == "impulse":
+            self._check_impulse_support()
+        baumgarte = self._baumgarte("finalize: baumgarte", baumgarte)
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
         contact_margin = self._non_negative(contact_margin, "finalize: contact_margin")
@@ -994,9 +1029,26 @@ class ModelBuilder:
             dt=dt, substeps=int(substeps), iterations=int(iterations), solver=solver,
             jacobi=bool(jacobi), velocity_dependent_inertia=bool(velocity_dependent_inertia),
             checkpoint=bool(checkpoint), contact_margin=contact_margin, contact_compliance=contact_compliance,
-            restitution_iterations=int(restitution_iterations),
+            restitution_iterations=int(restitution_iterations), initial_guess=initial_guess, baumgarte=baumgarte,
         )  # fmt: skip
         return self._model(options)
+
+    def _check_impulse_support(self) -> None:
+        """Refuse, naming the element, what the impulse solver has no velocity rows for."""
+        if self._ropes:
+            raise ValueError(f"finalize: rope 0 (over bodies {list(self._ropes[0][0])}): the impulse solver has no "
+                             "rope constraint (DBD 10.1); use solver='dbd', or distances along the rope")  # fmt: skip
+        if self._volumes:
+            raise ValueError(f"finalize: volume 0 (over bodies {list(self._volumes[0][0])}): the impulse solver has "
+                             "no volume constraint (DBD 10.2); use solver='dbd'")  # fmt: skip
+        for index, joint in enumerate(self._joints):
+            label = f"{JOINT_KIND_NAMES[joint.kind]} joint {index} ({joint.name!r})"
+            if joint.kind in (UNIVERSAL, GIMBAL):
+                raise ValueError(f"finalize: {label}: the impulse solver has no velocity rows for universal or gimbal "
+                                 "joints; use solver='dbd'")  # fmt: skip
+            if np.any(joint.armature > 0.0):
+                raise ValueError(f"finalize: {label} has armature: the impulse solver has no rotor rows; use "
+                                 "solver='dbd', or leave the armature out")  # fmt: skip
 
     def _resolve_bodies(self) -> tuple[list[_Body], list[tuple[np.ndarray, np.ndarray]]]:
         """Bodies with every mass and inertia filled in, and each shape's pose in its body's frame.
@@ -1130,6 +1182,8 @@ class ModelBuilder:
             local_axes_b=local_axes("body_b"),
             **{f: table([getattr(j, f) for j in js], 3) for f in ("axis_lower", "axis_upper", "axis_stiffness",
                                                                   "axis_damping", "armature")},
+            baumgarte=jnp.asarray(np.asarray([options.baumgarte if j.baumgarte is None else j.baumgarte for j in js],
+                                             dtype=np.float64)),
         )  # fmt: skip
         # a torque on a degree of freedom with armature acts through the joint's rotor row
         in_joint = [js[t.joint].armature[max(t.dof, 0)] > 0.0 for t in self._torques]
@@ -1218,9 +1272,11 @@ class ModelBuilder:
             torque_in_joint=StaticArray(np.asarray(in_joint, dtype=bool)),
             joint_rotor=StaticArray(np.reshape(np.asarray([j.armature > 0.0 for j in js], dtype=bool), (-1, 3))),
         )
+        contacts = len(structure.contact_groups)  # contact groups in colours of their own (colouring.py)
+        contact_class = [0] * (len(structure.family_bodies()) - contacts) + [1] * contacts
         structure = dataclasses.replace(
             structure,
-            colours=colouring.colour_groups(structure.family_bodies(), n),
+            colours=colouring.colour_groups(structure.family_bodies(), n, classes=contact_class),
             contact_colours=colouring.colour_groups([g.bodies.array for g in structure.contact_groups], n),
         )
         sh = self._shapes

@@ -39,15 +39,35 @@ def greedy_colouring(constraint_bodies: Sequence[Sequence[int]], num_bodies: int
     return result
 
 
-def colour_groups(family_bodies: Sequence[np.ndarray], num_bodies: int) -> tuple[Colour, ...]:
+def colour_groups(
+    family_bodies: Sequence[np.ndarray], num_bodies: int, classes: Sequence[int] | None = None
+) -> tuple[Colour, ...]:
     """Colour the nodes of every constraint family together.
 
     family_bodies: one (M_f, S_f) int table per family, the bodies each node moves (index
-    num_bodies = the world). Returns the colour groups, each with its nodes per family and the
-    gather table that writes the moved bodies back (see `Colour`).
+    num_bodies = the world). classes: one class per family (default: all 0); nodes of different
+    classes never share a colour, and lower classes get the lower colours. Returns the colour
+    groups, each with its nodes per family and the gather table that writes the moved bodies back
+    (see `Colour`).
+
+    The solver projects every family present in a colour as one vmapped call, so the cost of an
+    iteration (and the size of the compiled program) grows with the number of (colour, family)
+    pairs, not only with the number of colours. The builder puts contact groups in a class of their
+    own: a ragdoll's 15 floor contacts, each on its own body, then fill one colour (two families)
+    instead of being spread over the joints' colours (up to colours x families calls).
     """
+    classes = [0] * len(family_bodies) if classes is None else list(classes)
+    if len(classes) != len(family_bodies):
+        raise ValueError(f"colour_groups: {len(classes)} classes for {len(family_bodies)} families")
     nodes = [(f, m) for f, table in enumerate(family_bodies) for m in range(len(table))]
-    colours = greedy_colouring([family_bodies[f][m] for f, m in nodes], num_bodies)
+    colours = [0] * len(nodes)
+    first = 0
+    for kind in sorted(set(classes)):
+        members = [k for k, (f, _) in enumerate(nodes) if classes[f] == kind]
+        local = greedy_colouring([family_bodies[nodes[k][0]][nodes[k][1]] for k in members], num_bodies)
+        for k, colour in zip(members, local, strict=True):
+            colours[k] = first + colour
+        first += max(local, default=-1) + 1
     groups = []
     for colour in range(max(colours, default=-1) + 1):
         members = [[m for (f, m), c in zip(nodes, colours, strict=True) if f == family and c == colour]

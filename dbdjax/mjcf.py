@@ -50,6 +50,9 @@ actuator motor (gain fixed, no bias) -> add_torque(gear * gain): control = MuJoC
          hinge of a universal / gimbal joint it is the generalised force on that hinge alone.
          position (kp, kv; gear 1, hinge) -> add_drive(stiffness=kp, damping=kv, max_torque from
          a symmetric forcerange): control = target angle - qpos0 (= MuJoCo's ctrl when ref = 0).
+         Three position actuators on the hinges of a merged ball joint (about the parent's frame
+         axes x, y, z, equal gains) -> its ball drive, the three targets as a rotation vector
+         (`_ball_drive`; dbdjax/assets/ragdoll.xml uses this).
          ctrlrange -> `Model.control_range`; `step` does not clip (MuJoCo clips when ctrllimited).
 options  timestep -> finalize dt (finalize_kwargs override), gravity -> ModelBuilder gravity.
          MuJoCo's integrator choice, solver settings, iterations and contact parameters are not
@@ -211,8 +214,10 @@ def load_mjcf(path_or_xml: str | os.PathLike, **finalize_kwargs: Any) -> Model:
         signature = int(m.exclude_signature[e])
         builder.exclude_collision(body_index[signature >> 16], body_index[signature & 0xFFFF])
 
+    ball_drives: dict[int, int] = {}  # MuJoCo actuators already mapped onto a ball drive -> its control entry
     for a in range(m.nu):
-        _add_actuator(mujoco, m, d, builder, a, joint_of)
+        if a not in ball_drives:
+            _add_actuator(mujoco, m, d, builder, a, joint_of, body_quat, ball_drives)
 
     return builder.finalize(**{"dt": float(m.opt.timestep), **finalize_kwargs})
 
@@ -434,7 +439,52 @@ def _add_geom(mujoco, m, d, builder: ModelBuilder, g: int, body_index, body_quat
         builder.add_box(ours, half_extents=size[:3], pos=pos, quat=quat, **material)
 
 
-def _add_actuator(mujoco, m, d, builder: ModelBuilder, a: int, joint_of) -> None:
+def _ball_drive(mujoco, m, builder: ModelBuilder, a: int, ours: int, joint_of, body_quat, ball_drives) -> slice:
+    """Position actuators on the three hinges of a merged ball joint -> its ball drive (3 controls).
+
+    Supported when actuators a, a+1, a+2 are position actuators with gear 1 and equal kp, kv and
+    (symmetric) forcerange on the ball's hinges in their order, and those hinges turn about the
+    parent body's frame axes x, y, z: the drive target is then a rotation vector in the parent's
+    frame whose components are the three hinge targets (exact for one hinge at a time, the same to
+    first order otherwise: MuJoCo composes the hinges in sequence). The forcerange bounds the
+    drive's torque vector as a whole. Returns the slice of the drive's 3 control entries.
+    """
+    label = _label(m, "actuator", a)
+    hinges = sorted(j for j, (o, how, _) in joint_of.items() if o == ours and how == "merged")
+    actuators = list(range(a, a + len(hinges)))
+    ok = len(hinges) == 3 and actuators[-1] < m.nu
+    ok = ok and all(int(m.actuator_trnid[b, 0]) == j and m.actuator_trntype[b] == mujoco.mjtTrn.mjTRN_JOINT
+                    and _is_position(mujoco, m, b) and float(m.actuator_gear[b, 0]) == 1.0
+                    for b, j in zip(actuators, hinges, strict=True))  # fmt: skip
+    if ok:
+        parent_quat = body_quat[int(m.body_parentid[int(m.jnt_bodyid[hinges[0]])])]
+        local = np.array([host_math.rotate(parent_quat, joint_of[j][2], inverse=True) for j in hinges])
+        ok = np.allclose(local, np.eye(3), atol=1e-6)
+    gains = {(float(m.actuator_gainprm[b, 0]), float(m.actuator_biasprm[b, 2]), float(m.dof_damping[m.jnt_dofadr[j]]),
+              bool(m.actuator_forcelimited[b]), tuple(m.actuator_forcerange[b]))
+             for b, j in zip(actuators, hinges, strict=True)} if ok else set()  # fmt: skip
+    if not ok or len(gains) != 1:
+        raise ValueError(f"load_mjcf: MJCF {label}: position actuators on a merged ball joint are supported as one "
+                         "per hinge (3, consecutive, in the hinges' order, gear 1, equal kp, kv and forcerange) "
+                         "on hinges about the parent body's frame axes x, y, z")  # fmt: skip
+    kp, bias_kv, damping, limited, (low, high) = gains.pop()
+    max_torque = None
+    if limited:
+        if low != -high:
+            raise ValueError(f"load_mjcf: MJCF {label}: an asymmetric forcerange is not supported")
+        max_torque = float(high)
+    controls = builder.add_drive(ours, stiffness=kp, damping=-bias_kv + damping, max_torque=max_torque,
+                                 name=m.actuator(a).name or None)  # fmt: skip
+    for k, (b, j) in enumerate(zip(actuators, hinges, strict=True)):
+        ball_drives[b] = controls.start + k
+        if m.actuator_ctrllimited[b]:
+            offset = float(m.qpos0[m.jnt_qposadr[j]])
+            low, high = m.actuator_ctrlrange[b]
+            builder.set_control_range(controls.start + k, float(low) - offset, float(high) - offset)
+    return controls
+
+
+def _add_actuator(mujoco, m, d, builder: ModelBuilder, a: int, joint_of, body_quat, ball_drives) -> None:
     label = _label(m, "actuator", a)
     if m.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT:
         raise ValueError(f"load_mjcf: MJCF {label}: only joint transmissions are supported, not "
@@ -456,6 +506,9 @@ def _add_actuator(mujoco, m, d, builder: ModelBuilder, a: int, joint_of) -> None
         controls = builder.add_torque(ours, gear=gear * gain, axis=axis if how == "merged" else None,
                                       dof=axis if euler else None, name=m.actuator(a).name or None)  # fmt: skip
         offset = 0.0
+    elif _is_position(mujoco, m, a) and how == "merged":
+        _ball_drive(mujoco, m, builder, a, ours, joint_of, body_quat, ball_drives)
+        return
     elif _is_position(mujoco, m, a):
         # position: force = kp (ctrl - q) - kv q_dot, plus the joint's own damping (see _spring)
         kp, kv = gain, -float(bias[2]) + float(m.dof_damping[m.jnt_dofadr[j]])

@@ -76,6 +76,9 @@ class State:
 
     pos: (..., N, 3) m. quat: (..., N, 4) body-to-world rotation (w, x, y, z).
     vel: (..., N, 3) m/s. ang_vel: (..., N, 3) rad/s, world frame.
+    impulses: the impulse solver's accumulated impulses of the last substep, one (..., M_f, m_f)
+      array per constraint family (solvers/impulse.py), read back to warm-start the next one; None
+      for the DBD solver, and for a state built by hand (the impulse solver then starts cold).
     Leading axes are batch axes (the step is written for none and vmapped over them).
     """
 
@@ -83,6 +86,7 @@ class State:
     quat: jnp.ndarray
     vel: jnp.ndarray
     ang_vel: jnp.ndarray
+    impulses: tuple[jnp.ndarray, ...] | None = None
 
 
 State = _pytree(State)
@@ -115,6 +119,8 @@ class Joints:
     lower/upper: (J,) hinge angle or ball twist limits (rad), slider limits (m).
     cone_limit: (J,) largest angle between the twist axes of a ball joint, rad.
     relaxation: (J,) xi of DBD (46). regularization: (J,) alpha of DBD (47)-(52).
+    baumgarte: (J,) beta of SI (17), the fraction of the position error the impulse solver's bias
+      removes per substep (the DBD solver does not read it).
     drive_stiffness (N m/rad), drive_damping (N m s/rad), drive_max_torque (N m): (J,) the drive
       of DBD 9 (zero where a joint has none). motor_max_force: (J,) N (slider) or N m (hinge).
     local_axes_a/b: (J, 3, 3) universal and gimbal joints: rows m1, m2, m3, the successive hinge
@@ -136,6 +142,7 @@ class Joints:
     cone_limit: jnp.ndarray
     relaxation: jnp.ndarray
     regularization: jnp.ndarray
+    baumgarte: jnp.ndarray
     drive_stiffness: jnp.ndarray
     drive_damping: jnp.ndarray
     drive_max_torque: jnp.ndarray
@@ -394,13 +401,15 @@ class Options:
     dt: float
     substeps: int
     iterations: int
-    solver: str  # "dbd"
+    solver: str  # "dbd" or "impulse"
     jacobi: bool  # all joints at once, averaged per body, instead of coloured Gauss-Seidel
     velocity_dependent_inertia: bool  # DBD (58)
     checkpoint: bool  # jax.checkpoint each substep to keep reverse-mode memory flat
     contact_margin: float = 0.01  # m: shapes closer than this get contact slots (speculative)
     contact_compliance: float = 0.0  # m/N: 0 is rigid; > 0 softens contacts (smoother gradients)
     restitution_iterations: int = 2  # Gauss-Seidel sweeps of the velocity pass
+    initial_guess: str = "zero"  # "zero": dX = 0 (Algorithm 1); "tree": exact solve of the tree's linearised points
+    baumgarte: float = 0.2  # impulse solver: beta of SI (17) for contacts, springs' links, distances
 
 
 @dataclasses.dataclass(frozen=True)

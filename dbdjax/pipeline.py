@@ -2,32 +2,46 @@
 
 step(model, state, control):
   scan over substeps of h = dt / substeps:
+    solver="dbd":
     X*, V*  = integrator.predict(model, state, h)                  DBD (21)-(24)
     slots   = collision.detect(model, state, X*, h)                fixed shape, inactive masked
     dX, lam = solvers.dbd.solve(model, X*, control, slots, h, X)   Algorithm 1, (45)-(52), (84)-(93)
     state   = integrator.apply(X*, dX, h)                          (36)-(39)
     state   = solvers.dbd.restitution(model, state, slots, lam, h) velocity pass (SI 2.1.4)
+    solver="impulse":
+    X*, V*  = solvers.impulse.predict(model, state, h)             SI (12): V* = V + h M^-1 F_ext
+    slots   = collision.detect(model, state, X*, h)                the same slots
+    dV, lam = solvers.impulse.solve(model, state, V*, ...)         sequential impulses, warm-started
+    state   = solvers.impulse.integrate(state, V*, dV, lam, h)     SI (12): X' = X + h (V* + dV)
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 
 from dbdjax import collision, integrator
 from dbdjax.model import Model, State
-from dbdjax.solvers import dbd
+from dbdjax.solvers import dbd, impulse
 
 
 def init(model: Model) -> State:
     """The state the model was built in (positions, orientations, velocities of `add_body`)."""
     bodies = model.bodies
-    return State(
-        pos=bodies.initial_pos,
-        quat=bodies.initial_quat,
-        vel=bodies.initial_vel,
-        ang_vel=bodies.initial_ang_vel,
+    return _ready(
+        model,
+        State(pos=bodies.initial_pos, quat=bodies.initial_quat, vel=bodies.initial_vel, ang_vel=bodies.initial_ang_vel),
     )
+
+
+def _ready(model: Model, state: State) -> State:
+    """The impulse solver carries its impulses in the state: give a state without them zeros (a
+    cold start), so that a step's output has the structure of its input (lax.scan, rollout)."""
+    if model.options.solver == "impulse" and state.impulses is None:
+        return dataclasses.replace(state, impulses=impulse.initial_impulses(model, state.pos.dtype))
+    return state
 
 
 def _check_control(model: Model, control) -> None:
@@ -40,7 +54,13 @@ def _check_control(model: Model, control) -> None:
 
 
 def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -> State:
-    """One substep of h seconds: predict, detect contacts, solve, apply, restitution."""
+    """One substep of h seconds: predict, detect contacts, solve, apply, restitution (or, with
+    the impulse solver, predict, detect contacts, solve velocities, integrate)."""
+    if model.options.solver == "impulse":
+        predicted = impulse.predict(model, state, h, control)
+        slots = collision.detect(model, state, predicted, h)
+        velocity, spin, impulses = impulse.solve(model, state, predicted, control, slots, h)
+        return impulse.integrate(state, predicted, velocity, spin, impulses, h)
     predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)
     displacement, rotation, normal_multipliers = dbd.solve(model, predicted, control, slots, h, start=state)
@@ -55,6 +75,7 @@ def step(model: Model, state: State, control: jnp.ndarray | None = None) -> Stat
     Pure: jit, vmap and grad go through it (w.r.t. state, control and model float leaves).
     """
     _check_control(model, control)
+    state = _ready(model, state)
     options = model.options
     h = options.dt / options.substeps
     one_substep = lambda s: substep(model, s, control, h)  # noqa: E731
@@ -87,7 +108,7 @@ def rollout(
         s = step(model, s, control)
         return s, s
 
-    return jax.lax.scan(one_step, state, controls)
+    return jax.lax.scan(one_step, _ready(model, state), controls)
 
 
 def is_finite(state: State) -> jnp.ndarray:

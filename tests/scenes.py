@@ -44,3 +44,59 @@ def pendulum(joint: str = "hinge", length: float = 1.0, angle: float = 0.05, rad
     else:
         b.add_ball_joint(dbd.WORLD, bob, anchor=(0, 0, 0))
     return b.finalize(**finalize)
+
+
+def box_on_incline(angle_degrees: float, friction: float, dynamic_friction=None, **finalize):
+    """A 0.2 m cube resting face down on a plane tilted by `angle_degrees` about y. Returns
+    (model, start position of the cube's centre)."""
+    angle = np.radians(angle_degrees)
+    normal = np.array([-np.sin(angle), 0.0, np.cos(angle)])
+    b = dbd.ModelBuilder()
+    start = 0.1 * normal
+    box = b.add_body(pos=start, quat=(np.cos(-angle / 2), 0, np.sin(-angle / 2), 0))  # bottom face on the plane
+    material = dict(friction=friction, dynamic_friction=dynamic_friction)
+    b.add_box(box, (0.1, 0.1, 0.1), **material)
+    b.add_plane(normal=normal, **material)
+    return b.finalize(**finalize), start
+
+
+def ragdoll(height: float = 1.2, spin=(1.0, 2.0, 0.5), drives: bool = False, **finalize):
+    """A ragdoll of 10 bodies and 9 joints falling onto the ground plane: a box torso, a sphere
+    head (ball joint with a cone), arms and legs of two capsules each (shoulders and hips: ball
+    joints with cone and twist limits; elbows and knees: hinges with limits). Masses come from the
+    shapes (density 1000). Limbs do not collide with each other, only with the plane. The torso
+    starts `height` m up, turning at `spin` rad/s. drives: a drive (DBD 9) on every joint holding
+    the build pose (targets 0). Returns the model; joint names say which is which."""
+    b = dbd.ModelBuilder()
+    limb = dict(contype=2, conaffinity=1)  # limbs touch the plane only (MuJoCo's bit rule)
+    up = np.array([0.0, 0.0, height])
+    torso = b.add_body(pos=up, ang_vel=spin, name="torso")
+    b.add_box(torso, (0.12, 0.08, 0.2), **limb)
+    head = b.add_body(pos=up + (0, 0, 0.32), name="head")
+    b.add_sphere(head, 0.1, **limb)
+    joints = [b.add_ball_joint(torso, head, anchor=up + (0, 0, 0.22), cone_limit=0.6, name="neck")]
+    along_x = (np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0)  # a capsule's local z turned onto x
+    for side in (-1.0, 1.0):
+        shoulder = up + (side * 0.14, 0, 0.16)
+        upper = b.add_body(pos=shoulder + (side * 0.15, 0, 0), quat=along_x, name="upper arm")
+        b.add_capsule(upper, 0.04, 0.11, **limb)
+        fore = b.add_body(pos=shoulder + (side * 0.45, 0, 0), quat=along_x, name="forearm")
+        b.add_capsule(fore, 0.035, 0.11, **limb)
+        joints.append(b.add_ball_joint(torso, upper, anchor=shoulder, cone_limit=1.2, twist_limits=(-0.6, 0.6),
+                                       name="shoulder"))  # fmt: skip
+        joints.append(b.add_hinge_joint(upper, fore, anchor=shoulder + (side * 0.3, 0, 0), axis=(0, 0, side),
+                                        limits=(0.0, 2.2), name="elbow"))  # fmt: skip
+        hip = up + (side * 0.08, 0, -0.22)
+        thigh = b.add_body(pos=hip + (0, 0, -0.2), name="thigh")
+        b.add_capsule(thigh, 0.055, 0.14, **limb)
+        shin = b.add_body(pos=hip + (0, 0, -0.6), name="shin")
+        b.add_capsule(shin, 0.045, 0.15, **limb)
+        joints.append(b.add_ball_joint(torso, thigh, anchor=hip, cone_limit=1.0, twist_limits=(-0.4, 0.4),
+                                       name="hip"))  # fmt: skip
+        joints.append(b.add_hinge_joint(thigh, shin, anchor=hip + (0, 0, -0.4), axis=(1, 0, 0), limits=(0.0, 2.4),
+                                        name="knee"))  # fmt: skip
+    if drives:
+        for joint in joints:
+            b.add_drive(joint, stiffness=40.0, damping=4.0, max_torque=60.0)
+    b.add_plane(friction=0.8)
+    return b.finalize(**finalize)

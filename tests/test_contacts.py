@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scenes
 
 import dbdjax as dbd
 from dbdjax import collision
@@ -55,15 +56,7 @@ def test_ball_with_restitution_0_8_bounces_to_0_64_of_its_drop_height():
 
 
 def _box_on_incline(angle_degrees, friction, dynamic_friction=None):
-    angle = math.radians(angle_degrees)
-    normal = np.array([-math.sin(angle), 0.0, math.cos(angle)])
-    b = dbd.ModelBuilder()
-    start = 0.1 * normal
-    box = b.add_body(pos=start, quat=(math.cos(-angle / 2), 0, math.sin(-angle / 2), 0))  # bottom face on the plane
-    material = dict(friction=friction, dynamic_friction=dynamic_friction)
-    b.add_box(box, (0.1, 0.1, 0.1), **material)
-    b.add_plane(normal=normal, **material)
-    return b.finalize(dt=1 / 60, substeps=4, iterations=8), start
+    return scenes.box_on_incline(angle_degrees, friction, dynamic_friction, dt=1 / 60, substeps=4, iterations=8)
 
 
 @pytest.mark.parametrize("angle, static, dynamic", [(20.0, 0.5, None), (25.0, 0.5, 0.3)])

@@ -1,32 +1,15 @@
 """Gradients through rollouts: finite differences in float64, and no NaN at singular poses."""
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scenes
+from derivatives import central_difference, quick_jit, relative_error
 
 import dbdjax as dbd
-
-# These tests check derivatives, not speed: LLVM at -O0 more than halves their compile time.
-quick_jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
-
-
-def central_difference(function, x, epsilon=1e-6):
-    x = np.asarray(x, dtype=np.float64)
-    gradient = np.zeros_like(x)
-    for index in np.ndindex(x.shape):
-        step = np.zeros_like(x)
-        step[index] = epsilon
-        gradient[index] = (function(x + step) - function(x - step)) / (2 * epsilon)
-    return gradient
-
-
-def relative_error(a, b):
-    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / max(np.linalg.norm(np.asarray(b)), 1e-12))
 
 
 def swinging_chain(**finalize):

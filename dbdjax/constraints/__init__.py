@@ -77,7 +77,9 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         result.append(Family(group.name, table, params, np.zeros(len(table), bool), project, 6 * k))
     compliance_h2 = model.options.contact_compliance / h**2
     for group, slots in zip(structure.contact_groups, contacts, strict=True):
-        project = functools.partial(contact.project_contacts, compliance_h2=compliance_h2, sweeps=contact.SWEEPS)
+        project = functools.partial(
+            contact.project_contacts, compliance_h2=compliance_h2, sweeps=contact.sweeps(group.num_points)
+        )
         result.append(Family(group.name, group.bodies.array, slots, on_world(group.bodies.array), project,
                              contact.MULTIPLIERS_PER_POINT * group.num_points))  # fmt: skip
     return result
@@ -88,9 +90,9 @@ def restitution_families(model: Model, contacts: tuple[ContactSlots, ...], h: fl
     Impacts slower than 2 |g| h do not bounce: that is the speed gravity alone builds up in a
     substep or two, and bouncing it would keep resting bodies jittering."""
     slow = 2.0 * math.safe_norm(model.gravity) * h
-    project = functools.partial(contact.project_restitution, slow=slow, sweeps=contact.SWEEPS)
     return [
-        Family(group.name, group.bodies.array, slots, group.bodies.array == model.num_bodies, project,
+        Family(group.name, group.bodies.array, slots, group.bodies.array == model.num_bodies,
+               functools.partial(contact.project_restitution, slow=slow, sweeps=contact.sweeps(group.num_points)),
                group.num_points)
         for group, slots in zip(model.structure.contact_groups, contacts, strict=True)
     ]  # fmt: skip

@@ -41,7 +41,16 @@ from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
 
 MULTIPLIERS_PER_POINT = 4  # lambda_n, kappa along t1 and t2, one unused (a 4-aligned row)
-SWEEPS = 16  # Gauss-Seidel sweeps over a pair's points on its linearised coupling
+SWEEPS = 16  # Gauss-Seidel sweeps over a pair's points on its linearised coupling (P >= 4)
+# Fewer sweeps where a pair has few points: one or two points converge on their small system in a
+# few sweeps, and the solver's outer iterations re-linearise and go on from the multipliers so far.
+# A box's 4-8 corners, strongly coupled through its rotation, keep 16 (stacks need them).
+FEW_POINT_SWEEPS = {1: 2, 2: 4}
+
+
+def sweeps(points: int) -> int:
+    """Gauss-Seidel sweeps for a pair of P contact points (sphere-plane P = 1, capsule-plane 2, box-plane 8)."""
+    return FEW_POINT_SWEEPS.get(points, SWEEPS)
 
 
 def _manifold(pair: BodyPair, normal: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jnp.ndarray):
@@ -104,8 +113,9 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
     blocks = coupling.reshape(points, 3, points, 3)
     solvable = slots.active & (diagonal[:, 0] > 0.0)
 
-    def point(i, increment):
-        residual = error[i] + blocks[i].reshape(3, -1) @ increment.reshape(-1)  # row errors after the increment
+    def point(i: int, increment):
+        # row errors after the increment: the pair's coupling times every point's increment
+        residual = error[i] + jnp.sum(blocks[i] * increment[None], axis=(-2, -1))
         total = lam[i] + increment[i]
         normal = jnp.maximum(total[0] - (residual[0] + compliance_h2 * total[0]) / jnp.where(
             solvable[i], diagonal[i, 0] + compliance_h2, 1.0), 0.0)  # fmt: skip
@@ -124,7 +134,9 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
         return increment.at[i].set(new - lam[i])
 
     def sweep(increment, _):
-        return jax.lax.fori_loop(0, points, point, increment), None
+        for i in range(points):  # unrolled: P is static and small, XLA fuses the points' arithmetic
+            increment = point(i, increment)
+        return increment, None
 
     increment, _ = jax.lax.scan(sweep, jnp.zeros_like(lam), None, length=sweeps)
     pair = _move(pair, increment, directions, turn_a, turn_b)
@@ -155,12 +167,11 @@ def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet,
     normal_coupling = coupling.reshape(points, 3, points, 3)[:, 0, :, 0]
     pushed = slots.active & (normal_multipliers > 0.0) & (jnp.diagonal(normal_coupling) > 0.0)
 
-    def point(i, increment):
-        step = -(error[i] + normal_coupling[i] @ increment) / jnp.where(pushed[i], normal_coupling[i, i], 1.0)
-        return increment.at[i].add(jnp.where(pushed[i], step, 0.0))
-
     def sweep(increment, _):
-        return jax.lax.fori_loop(0, points, point, increment), None
+        for i in range(points):  # unrolled, as in project_contacts
+            step = -(error[i] + normal_coupling[i] @ increment) / jnp.where(pushed[i], normal_coupling[i, i], 1.0)
+            increment = increment.at[i].add(jnp.where(pushed[i], step, 0.0))
+        return increment, None
 
     increment, _ = jax.lax.scan(sweep, jnp.zeros(points, error.dtype), None, length=sweeps)
     impulse = jnp.stack([increment, jnp.zeros_like(increment), jnp.zeros_like(increment)], axis=1)

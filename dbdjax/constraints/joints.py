@@ -54,13 +54,15 @@ from dbdjax.model import (
     with_world_row,
 )
 
-# Multipliers of one joint, in the order of `project`'s rows. The ball drive's torque and the
-# point block's impulse are 3-vectors: they own slots [DRIVE, DRIVE + 3) and [POINT, POINT + 3).
-# A universal or gimbal joint's hinge k owns DRIVE + k, EULER_LOWER + k and EULER_UPPER + k; the
-# rotor of degree of freedom k (a ball's: all three) owns ROTOR + k.
-DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 5, 6, 7
-TRAVEL_LOWER, TRAVEL_UPPER, POINT = 8, 9, 10
-EULER_LOWER, EULER_UPPER, ROTOR = 13, 16, 19
+# Multipliers of one joint, in the order of `project`'s rows. The ball drive's torque, the
+# rotation lock's and the point block's impulses are 3-vectors: they own slots [DRIVE, DRIVE + 3),
+# [ROTATION_LOCK, ROTATION_LOCK + 3) and [POINT, POINT + 3). A universal joint's lock row owns
+# ROTATION_LOCK (its three-row block is inactive there). A universal or gimbal joint's hinge k owns
+# DRIVE + k, EULER_LOWER + k and EULER_UPPER + k; the rotor of degree of freedom k (a ball's: all
+# three) owns ROTOR + k.
+DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 7, 8, 9
+TRAVEL_LOWER, TRAVEL_UPPER, POINT = 10, 11, 12
+EULER_LOWER, EULER_UPPER, ROTOR = 15, 18, 21
 NUM_MULTIPLIERS = ROTOR + 3
 
 
@@ -169,10 +171,10 @@ def _coordinates(joint: Joints, flag: JointFlags, pair: BodyPair, kinds: frozens
     """The joint's coordinates at the pair's pose: (hinge or planar angle, slider travel, universal /
     gimbal angles (3,), relative rotation from rest (4,)), those of `kinds` only (else zeros)."""
     zero = jnp.zeros((), pair.origin_a.dtype)
-    angle = _hinge_angle(joint, pair)[0] if "rotor_hinge" in kinds else zero
-    travel = _slider_travel(joint, flag, pair)[0] if "rotor_slider" in kinds else zero
+    angle = hinge_angle(joint, pair)[0] if "rotor_hinge" in kinds else zero
+    travel = slider_travel(joint, flag, pair)[0] if "rotor_slider" in kinds else zero
     euler = _euler_angles(joint, flag, pair, kinds)[0] if "rotor_euler" in kinds else jnp.zeros(3, zero.dtype)
-    relative = _relative_rotation(joint, *pair.current_quats()) if "rotor_ball" in kinds else jnp.zeros(4, zero.dtype)
+    relative = relative_rotation(joint, *pair.current_quats()) if "rotor_ball" in kinds else jnp.zeros(4, zero.dtype)
     return angle, travel, euler, relative
 
 
@@ -226,27 +228,28 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
     block alone."""
     f = flags(structure)
     used = {name for name, values in f._asdict().items() if values.any()}
-    if (f.hinge | f.rotation_locked | f.planar | f.universal).any():
+    if (f.hinge | f.rotation_locked | f.planar).any():
         used.add("rotation_lock")
     return frozenset(used | {"point"})
 
 
-def _anchor_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
-    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX."""
+def joint_points(joint: Joints, flag: JointFlags, pair: BodyPair, quat_a, quat_b):
+    """The joint point on each body: (delta = p_a - p_b, arm_a, arm_b) at X* + dX, for one joint
+    (no J axis) whose bodies have the orientations quat_a, quat_b."""
     return row.anchor_points(pair, joint.local_anchor_a, joint.local_anchor_b, flag.world_a, flag.world_b,
                              quat_a, quat_b)  # fmt: skip
 
 
-def _relative_rotation(joint: Joints, quat_a, quat_b):
+def relative_rotation(joint: Joints, quat_a, quat_b):
     """X with q_b = q_a X rest: the rotation of b away from its rest pose, in a's frame."""
     relative = math.quat_multiply(math.quat_conjugate(quat_a), quat_b)
     return math.quat_multiply(relative, math.quat_conjugate(joint.rest_rotation))
 
 
-def _hinge_angle(joint: Joints, pair: BodyPair):
+def hinge_angle(joint: Joints, pair: BodyPair):
     """(angle of b about the axle from its rest pose (rad), world axle = dangle/dtheta_b)."""
     quat_a, quat_b = pair.current_quats()
-    angle = math.quat_twist_angle(_relative_rotation(joint, quat_a, quat_b), joint.local_axis_a)
+    angle = math.quat_twist_angle(relative_rotation(joint, quat_a, quat_b), joint.local_axis_a)
     # The bisector of the two bodies' axes (equal for a hinge, close for a ball's twist axis).
     axis, _ = math.safe_normalize(
         math.quat_rotate(quat_a, joint.local_axis_a) + math.quat_rotate(quat_b, joint.local_axis_b)
@@ -265,13 +268,13 @@ def _euler_angles(joint: Joints, flag: JointFlags, pair: BodyPair, rows: frozens
     return math.euler_angles(axes_a, axes_b, universal)
 
 
-def _slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
+def slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
     """(travel d = (p_b - p_a) . axis, world axis, arm_a, arm_b) of a slider, SI (65)-(78).
 
     Body a's arm reaches the point of a level with p_b, so an impulse along the axis acts on the
     line through both points."""
     quat_a, quat_b = pair.current_quats()
-    delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
+    delta, arm_a, arm_b = joint_points(joint, flag, pair, quat_a, quat_b)
     axis = math.quat_rotate(quat_a, joint.local_axis_a)
     travel = -math.dot(delta, axis)
     across = delta + travel[..., None] * axis
@@ -316,19 +319,19 @@ def project(
             return math.safe_atan2(jnp.sin(angle - reference), jnp.cos(angle - reference))
 
     if "rotor_hinge" in rows:
-        reference, _ = _hinge_angle(joint, still)
-        angle, axis = _hinge_angle(joint, pair)
+        reference, _ = hinge_angle(joint, still)
+        angle, axis = hinge_angle(joint, pair)
         error, rule = rotor(0, wrapped(angle, reference), flag.rotor_hinge)
         pair, lam[ROTOR] = row.angular_row(pair, -axis, error, lam[ROTOR], rule, h)
     if "rotor_slider" in rows:
-        reference, *_ = _slider_travel(joint, flag, still)
-        travel, axis, arm_a, arm_b = _slider_travel(joint, flag, pair)
+        reference, *_ = slider_travel(joint, flag, still)
+        travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
         error, rule = rotor(0, travel - reference, flag.rotor_slider)
         pair, lam[ROTOR] = row.positional_row(pair, -axis, arm_a, arm_b, error, lam[ROTOR], rule, h)
     if "rotor_ball" in rows:
         quat_a, quat_b = pair.current_quats()
-        predicted = _relative_rotation(joint, still.quat_a, still.quat_b)
-        change = math.quat_multiply(_relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(predicted))
+        predicted = relative_rotation(joint, still.quat_a, still.quat_b)
+        change = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(predicted))
         error = math.quat_rotate(quat_a, math.quat_log(change)) + target.rotor  # (ball torques are refused)
         pair, kappa = row.angular_spring(
             pair, error, jnp.stack(lam[ROTOR : ROTOR + 3]), xi, joint.armature[0], 0.0, jnp.inf, flag.rotor_ball, h
@@ -347,7 +350,7 @@ def project(
     stiffness_h2, damping_h = joint.drive_stiffness * h**2, joint.drive_damping * h
     torque_bound = joint.drive_max_torque * h**2
     if "hinge_drive" in rows:
-        angle, axis = _hinge_angle(joint, pair)
+        angle, axis = hinge_angle(joint, pair)
         offset = angle - target.drive[0]
         error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
         pair, lam[DRIVE] = row.angular_row(
@@ -357,7 +360,7 @@ def project(
     if "ball_drive" in rows:
         quat_a, quat_b = pair.current_quats()
         goal = math.quat_exp(target.drive)  # the target relative rotation, in a's frame
-        error_rotation = math.quat_multiply(_relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
+        error_rotation = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
         error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
         pair, kappa = row.angular_spring(
             pair, error, jnp.stack(lam[DRIVE : DRIVE + 3]), xi, stiffness_h2, damping_h, torque_bound,
@@ -380,40 +383,59 @@ def project(
     # Motor: the relative speed along the axle or slide axis, force-limited (SI 2.3.6, 2.4.6).
     force_bound = joint.motor_max_force * h**2
     if "angular_motor" in rows:
-        _, axis = _hinge_angle(joint, pair)
+        _, axis = hinge_angle(joint, pair)
         pair, lam[MOTOR] = row.angular_row(
             pair, -axis, 0.0, lam[MOTOR], row.motor(xi, flag.angular_motor, target.motor * h, force_bound), h
         )
     if "linear_motor" in rows:
-        _, axis, arm_a, arm_b = _slider_travel(joint, flag, pair)
+        _, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
         pair, lam[MOTOR] = row.positional_row(
             pair, -axis, arm_a, arm_b, 0.0, lam[MOTOR],
             row.motor(xi, flag.linear_motor, target.motor * h, force_bound), h,
         )  # fmt: skip
 
-    # Angular lock. Hinge: the axle constraint, angle between the axes (73) along w (75); the
-    # update rotates a toward b (78). Universal: the same row on hinge axis 1 (on a) and axis 2
-    # (on b), whose angle stays 90 degrees. Slider, fixed: the whole relative rotation (SI (53)),
-    # in its rotation-invariant magnitude form so that it conserves angular momentum (DBD 5.1).
+    # Angular lock, one block of rows (`row.angular_block`) so that where the lock holds no row
+    # takes its direction from a normalised near-zero vector. Hinge and planar: the axle
+    # alignment (DBD 6 (73)-(80), SI 2.4.1): c = axis_b x axis_a (|c| = sin of (73)'s angle),
+    # locked across the bisector of the two axes; a rotation of a by dtheta changes c by
+    # P dtheta, P the projector across the axle. Slider, fixed: the whole relative rotation
+    # (SI (53)), c = minus the world rotation vector of X.
     if "rotation_lock" in rows:
         quat_a, quat_b = pair.current_quats()
         axis_a = math.quat_rotate(quat_a, joint.local_axis_a)
         axis_b = math.quat_rotate(quat_b, joint.local_axis_b)
-        axle_angle, axle_axis = math.angle_between(axis_a, axis_b)
-        relative = _relative_rotation(joint, quat_a, quat_b)
-        lock_axis, lock_angle = math.safe_normalize(math.quat_rotate(quat_a, math.quat_log(relative)))
-        axle = flag.hinge | flag.planar | flag.universal
-        error = jnp.where(axle, axle_angle - jnp.where(flag.universal, jnp.pi / 2, 0.0), lock_angle)
-        direction = jnp.where(axle[..., None], -axle_axis, -lock_axis)  # dc/dtheta_a
+        axle = flag.hinge | flag.planar
+        bisector, _ = math.safe_normalize(axis_a + axis_b)
+        eye = jnp.eye(3, dtype=axis_a.dtype)
+        across = jnp.where(axle, eye - bisector[:, None] * bisector[None, :], eye)
+        misalignment = math.cross(axis_b, axis_a)
+        lock = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
+        error = jnp.where(axle, misalignment, lock)
+        pair, locked = row.angular_block(
+            pair, error, jnp.stack(lam[ROTATION_LOCK : ROTATION_LOCK + 3]), hard(axle | flag.rotation_locked),
+            constrained=across,
+        )  # fmt: skip
+        lam[ROTATION_LOCK : ROTATION_LOCK + 3] = list(locked)
+
+    # Universal lock: hinge axis 1 (on a) and axis 2 (on b) stay perpendicular (DBD 6, (73)-(80),
+    # with the axle's 0 replaced by 90 degrees), c = m1_a . m2_b. A rotation of a by dtheta moves
+    # m1_a by dtheta x m1_a, so dc/dtheta_a = m1_a x m2_b = -dc/dtheta_b: a unit vector where the
+    # constraint holds (the axes are perpendicular there), so the row's direction never comes from
+    # normalising a vanishing vector. Not the angle form acos(c) - pi/2 along the normalised cross
+    # product: same row at the solution, but c is polynomial in the orientations.
+    if "universal" in rows:
+        quat_a, quat_b = pair.current_quats()
+        axis_1 = math.quat_rotate(quat_a, joint.local_axes_a[0])
+        axis_2 = math.quat_rotate(quat_b, joint.local_axes_b[1])
         pair, lam[ROTATION_LOCK] = row.angular_row(
-            pair, direction, error, lam[ROTATION_LOCK], hard(axle | flag.rotation_locked)
+            pair, math.cross(axis_1, axis_2), math.dot(axis_1, axis_2), lam[ROTATION_LOCK], hard(flag.universal)
         )
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83).
     if "has_angle_limits" in rows:
         for index, sign in ((ANGLE_LOWER, -1.0), (ANGLE_UPPER, 1.0)):
-            angle, axis = _hinge_angle(joint, pair)
+            angle, axis = hinge_angle(joint, pair)
             error = (angle - joint.lower) if sign < 0 else (joint.upper - angle)
             pair, lam[index] = row.angular_row(
                 pair, sign * axis, error, lam[index], hard(flag.has_angle_limits, inequality=True)
@@ -446,7 +468,7 @@ def project(
     # Slider travel limits, SI (65)-(78), on the travel d = (p_b - p_a) . axis.
     if "has_travel_limits" in rows:
         for index, sign, bound in ((TRAVEL_LOWER, -1.0, joint.lower), (TRAVEL_UPPER, 1.0, joint.upper)):
-            travel, axis, arm_a, arm_b = _slider_travel(joint, flag, pair)
+            travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
             error = (travel - bound) if sign < 0 else (bound - travel)
             pair, lam[index] = row.positional_row(
                 pair, sign * axis, arm_a, arm_b, error, lam[index], hard(flag.has_travel_limits, inequality=True)
@@ -461,7 +483,7 @@ def project(
     # A slider only removes the part across its axis (SI (51)), a planar joint only the part along
     # its normal; both act level with p_b on a.
     quat_a, quat_b = pair.current_quats()
-    delta, arm_a, arm_b = _anchor_points(joint, flag, pair, quat_a, quat_b)
+    delta, arm_a, arm_b = joint_points(joint, flag, pair, quat_a, quat_b)
     constrained = None
     if "slider" in rows or "planar" in rows:
         axis = math.quat_rotate(quat_a, joint.local_axis_a)

@@ -18,7 +18,7 @@ from dbdjax.constraints.rows import BodyPair, BodySet
 from dbdjax.model import Distances, Springs
 
 
-def _line(local_anchor_a, local_anchor_b, world: np.ndarray, pair: BodyPair):
+def line(local_anchor_a, local_anchor_b, world: np.ndarray, pair: BodyPair):
     """(unit direction, length, arm_a, arm_b) of the line from p_b to p_a at X* + dX.
 
     world: (2,) bool, which side is the world (its anchor is a world point, its arm zero)."""
@@ -32,7 +32,7 @@ def project_spring(spring: Springs, world: np.ndarray, bodies: BodySet, multipli
     """One implicit spring/damper row (DBD (105), (108)-(109)). multiplier: (1,). Returns
     (dx (2, 3), dtheta (2, 3), multiplier)."""
     pair = BodyPair.of(bodies)
-    direction, length, arm_a, arm_b = _line(spring.local_anchor_a, spring.local_anchor_b, world, pair)
+    direction, length, arm_a, arm_b = line(spring.local_anchor_a, spring.local_anchor_b, world, pair)
     rule = row.spring(spring.relaxation, True, spring.stiffness * h**2, spring.damping * h)
     pair, lam = row.positional_row(pair, direction, arm_a, arm_b, length - spring.rest_length, multiplier[0], rule, h)
     return *pair.displacements(), lam[None]
@@ -41,7 +41,7 @@ def project_spring(spring: Springs, world: np.ndarray, bodies: BodySet, multipli
 def project_distance(distance: Distances, world: np.ndarray, bodies: BodySet, multiplier: jnp.ndarray):
     """One rigid distance row, DBD (45)-(52) on c = |p_a - p_b| - length. multiplier: (1,)."""
     pair = BodyPair.of(bodies)
-    direction, length, arm_a, arm_b = _line(distance.local_anchor_a, distance.local_anchor_b, world, pair)
+    direction, length, arm_a, arm_b = line(distance.local_anchor_a, distance.local_anchor_b, world, pair)
     rule = row.rigid(distance.relaxation, 0.0, True)
     pair, lam = row.positional_row(pair, direction, arm_a, arm_b, length - distance.length, multiplier[0], rule)
     return *pair.displacements(), lam[None]

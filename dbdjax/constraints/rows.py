@@ -176,6 +176,21 @@ def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
     return jnp.where(solvable, step, 0.0)
 
 
+def row_inverse_mass(pair: BodyPair, angular_a, angular_b, linear_squared=None):
+    """w = J M~^-1 J^T of one row (DBD (51), (57); SI (34), (113)): (w, I_a^-1 angular_a, I_b^-1 angular_b).
+
+    angular_a, angular_b: (..., 3) the row's angular parts on a and b (arm x direction for a
+    positional row, the direction itself for an angular one). linear_squared: |linear part|^2 (1
+    for a unit direction), None for an angular row (no linear part). Broadcasts over leading axes.
+    """
+    turn_a = math.matvec(pair.inv_inertia_a, angular_a)
+    turn_b = math.matvec(pair.inv_inertia_b, angular_b)
+    if linear_squared is None:
+        return math.dot(angular_a, turn_a) + math.dot(angular_b, turn_b), turn_a, turn_b
+    inverse_mass = linear_squared * (pair.inv_mass_a + pair.inv_mass_b) + math.dot(angular_a, turn_a)
+    return inverse_mass + math.dot(angular_b, turn_b), turn_a, turn_b
+
+
 def positional_row(
     pair: BodyPair,
     direction: jnp.ndarray,
@@ -191,11 +206,7 @@ def positional_row(
     Returns the moved pair and the new multiplier."""
     torque_a = math.cross(arm_a, direction)
     torque_b = math.cross(arm_b, direction)
-    turn_a = math.matvec(pair.inv_inertia_a, torque_a)
-    turn_b = math.matvec(pair.inv_inertia_b, torque_b)
-    inverse_mass = (
-        pair.inv_mass_a + pair.inv_mass_b + math.dot(torque_a, turn_a) + math.dot(torque_b, turn_b)
-    )  # (57) projected on the direction, (56)
+    inverse_mass, turn_a, turn_b = row_inverse_mass(pair, torque_a, torque_b, 1.0)  # (57) along the direction, (56)
     drift = 0.0
     if rule.spring or rule.speed:
         drift = (
@@ -222,9 +233,7 @@ def angular_row(
     h: float = 1.0,
 ) -> tuple[BodyPair, jnp.ndarray]:
     """Project one angular row: error c (rad) with dc/dtheta_a = `direction` = -dc/dtheta_b."""
-    turn_a = math.matvec(pair.inv_inertia_a, direction)
-    turn_b = math.matvec(pair.inv_inertia_b, direction)
-    inverse_mass = math.dot(direction, turn_a) + math.dot(direction, turn_b)  # (76)
+    inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     drift = 0.0
     if rule.spring or rule.speed:
         drift = math.dot(direction, h * (pair.ang_vel_a - pair.ang_vel_b) + (pair.dtheta_a - pair.dtheta_b))
@@ -268,6 +277,43 @@ def angular_spring(
     moved = pair._replace(
         dtheta_a=pair.dtheta_a - math.matvec(pair.inv_inertia_a, step),
         dtheta_b=pair.dtheta_b + math.matvec(pair.inv_inertia_b, step),
+    )
+    return moved, multiplier + step
+
+
+def angular_block(
+    pair: BodyPair,
+    error: jnp.ndarray,
+    multiplier: jnp.ndarray,
+    rule: Rule,
+    constrained: jnp.ndarray | None = None,
+) -> tuple[BodyPair, jnp.ndarray]:
+    """Project a rotation lock c = `error` (3,) rad, with dc/dtheta_a = 1 = -dc/dtheta_b, as one
+    block of three angular rows (SI (53), (85)-(88)) by the rigid rule in matrix form, with the
+    effective inverse inertia W = I_a^-1 + I_b^-1 (113) regularised by alpha.
+
+    The angular twin of `point_block`, and for the same reason: the one-row magnitude form (a row
+    along the normalised error) takes its direction from rounding noise where the lock holds, so
+    the sweeps would amplify that noise instead of damping it. multiplier: (3,) so far this
+    substep (kg m^2). constrained: (3, 3) orthogonal projector onto the locked directions (the
+    plane across a hinge's axle, SI 2.4.1), None for all three. Returns the moved pair and the new
+    multiplier.
+    """
+    if rule.spring or rule.speed:
+        raise ValueError("angular_block takes the rigid rule only")
+    eye = jnp.eye(3, dtype=error.dtype)
+    inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b + rule.regularization * eye  # (113), (47)
+    residual = error + rule.regularization * multiplier
+    if constrained is not None:  # restricted to range(P), as in point_block
+        inverse_inertia = constrained @ inverse_inertia @ constrained + (eye - constrained)
+        residual = math.matvec(constrained, residual)
+    determinant = math.dot(inverse_inertia[0], math.cross(inverse_inertia[1], inverse_inertia[2]))
+    solvable = rule.active & (determinant > 0.0)  # positive definite unless both sides are static
+    solve = math.inverse3(jnp.where(solvable, inverse_inertia, eye))
+    step = jnp.where(solvable, -rule.relaxation * math.matvec(solve, residual), 0.0)
+    moved = pair._replace(
+        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, step),
+        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, step),
     )
     return moved, multiplier + step
 

@@ -2,6 +2,8 @@
 
     prepare:  inverse masses and world inverse inertias at X* (once per substep), and each
               colour's constraint parameters gathered into its own arrays
+    guess:    dX = 0, or with initial_guess="tree" dX and the joints' point multipliers from the
+              exact linear solve of the joint tree's point constraints (solvers/tree.py)
     repeat `iterations` times:                                   (lax.scan)
         for each colour, in order:                               (unrolled: a model has few)
             for each constraint family present in the colour:
@@ -24,9 +26,10 @@ import numpy as np
 
 from dbdjax import constraints, integrator
 from dbdjax.collision import ContactSlots
-from dbdjax.constraints import Family
+from dbdjax.constraints import Family, joints
 from dbdjax.constraints.rows import BodySet
 from dbdjax.model import Colour, Model, State, with_world_row
+from dbdjax.solvers import tree
 
 
 def body_table(model: Model, state: State, h: float) -> BodySet:
@@ -53,39 +56,132 @@ def _project(family: Family, table: BodySet, dx, dtheta, multipliers):
     return moved_dx.reshape(-1, 3), moved_dtheta.reshape(-1, 3), multipliers
 
 
-def _gauss_seidel(
+def _runs(present: list[list[int]]) -> list[tuple[int, int]]:
+    """Consecutive colours with the same families present: [(first, stop), ...]."""
+    runs: list[list[int]] = []
+    for c, fs in enumerate(present):
+        if runs and present[runs[-1][0]] == fs:
+            runs[-1][1] = c + 1
+        else:
+            runs.append([c, c + 1])
+    return [(first, stop) for first, stop in runs]
+
+
+class _Run:
+    """Colours first..stop-1 with the same families: stacked for one `lax.scan` over them.
+
+    Each family's nodes are padded to the run's largest colour by repeating the colour's first
+    node (a real node: its arithmetic stays finite, so no NaN reaches a gradient); the padded rows
+    are never read back, since `body_slot` (recomputed here for the padded layout) points every
+    moved body at its real node's row.
+    """
+
+    def __init__(self, colours: tuple[Colour, ...], families: list[Family], first: int, stop: int, fs: list[int],
+                 num_bodies: int):  # fmt: skip
+        self.first, self.stop, self.fs = first, stop, fs
+        self.nodes = [[colours[c].nodes[f].array for c in range(first, stop)] for f in fs]
+        self.width = [max(len(nodes) for nodes in per_colour) for per_colour in self.nodes]
+        self.index = [
+            np.stack([np.concatenate([nodes, np.repeat(nodes[:1], width - len(nodes))]) for nodes in per_colour])
+            for per_colour, width in zip(self.nodes, self.width, strict=True)
+        ]  # (R, M_f) node indices per family
+        self.families = []
+        for f, index in zip(fs, self.index, strict=True):
+            gathered = constraints.gather(families[f], index.reshape(-1))
+            reshape = lambda x, shape=index.shape: x.reshape(shape + x.shape[1:])  # noqa: E731
+            self.families.append(gathered._replace(
+                bodies=reshape(gathered.bodies), params=jax.tree.map(reshape, gathered.params),
+                static=jax.tree.map(reshape, gathered.static)))  # fmt: skip
+        rows = sum(width * family.bodies.shape[-1] for width, family in zip(self.width, self.families, strict=True))
+        slots = []
+        for r in range(stop - first):
+            slot = rows + np.arange(num_bodies + 1, dtype=np.int32)
+            offset = 0
+            for k, family in enumerate(self.families):
+                size = family.bodies.shape[-1]
+                for m in range(len(self.nodes[k][r])):
+                    for s, body in enumerate(family.bodies[r, m]):
+                        if body < num_bodies:
+                            slot[body] = offset + m * size + s
+                offset += self.width[k] * size
+            slots.append(slot)
+        self.body_slot = np.stack(slots)  # (R, N + 1)
+
+
+def gauss_seidel(
     colours: tuple[Colour, ...], families: list[Family], table: BodySet, iterations: int, multipliers: list
 ) -> tuple[jnp.ndarray, jnp.ndarray, list]:
     """`iterations` sweeps over the colours; multipliers: one (M_f, m_f) array per family, in
-    node order, in and out. Returns (dx, dtheta) (N + 1, 3) and the final multipliers."""
+    node order, in and out. Returns (dx, dtheta) (N + 1, 3) and the final multipliers.
+
+    Consecutive colours with the same families (a ragdoll's joint colours) run as one `lax.scan`
+    over the colours (`_Run`), so each family's projection is compiled once, not once per colour:
+    the compile time of a jointed model no longer grows with its number of colours. A colour of
+    its own (different families from its neighbours) is unrolled as before.
+    """
+    n = table.dx.shape[0] - 1
     present = [[f for f, nodes in enumerate(colour.nodes) if len(nodes.array)] for colour in colours]
-    groups = [[constraints.gather(families[f], colours[c].nodes[f].array) for f in fs] for c, fs in enumerate(present)]
-    start = [[multipliers[f][colours[c].nodes[f].array] for f in fs] for c, fs in enumerate(present)]
+    runs = [_Run(colours, families, first, stop, present[first], n) if stop - first > 1 else None
+            for first, stop in _runs(present)]  # fmt: skip
+    bounds = _runs(present)
+    single = {first: [constraints.gather(families[f], colours[first].nodes[f].array) for f in present[first]]
+              for (first, stop), run in zip(bounds, runs, strict=True) if run is None}  # fmt: skip
+
+    def start_multipliers(first, run):
+        if run is None:
+            return [multipliers[f][colours[first].nodes[f].array] for f in present[first]]
+        return [multipliers[f][index] for f, index in zip(run.fs, run.index, strict=True)]
+
+    start = [start_multipliers(first, run) for (first, _), run in zip(bounds, runs, strict=True)]
+
+    def write_back(moved, dx, dtheta, slot):
+        dx = jnp.concatenate([m[0] for m in moved] + [dx])[slot]
+        dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta])[slot]
+        return dx, dtheta
 
     def iteration(carry, _):
         dx, dtheta, lams = carry
         updated = []
-        for colour_groups, colour, colour_lams in zip(groups, colours, lams, strict=True):
-            moved = [_project(f, table, dx, dtheta, lam) for f, lam in zip(colour_groups, colour_lams, strict=True)]
-            slot = colour.body_slot.array
-            dx = jnp.concatenate([m[0] for m in moved] + [dx])[slot]
-            dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta])[slot]
-            updated.append([m[2] for m in moved])
+        for (first, _), run, run_lams in zip(bounds, runs, lams, strict=True):
+            if run is None:
+                moved = [_project(f, table, dx, dtheta, lam) for f, lam in zip(single[first], run_lams, strict=True)]
+                dx, dtheta = write_back(moved, dx, dtheta, colours[first].body_slot.array)
+                updated.append([m[2] for m in moved])
+                continue
+
+            def colour(carry, xs, run=run):
+                dx, dtheta = carry
+                parts, slot, colour_lams = xs
+                moved = [_project(family._replace(bodies=bodies, params=params, static=static), table, dx, dtheta, lam)
+                         for family, (bodies, params, static), lam in zip(run.families, parts, colour_lams,
+                                                                          strict=True)]  # fmt: skip
+                return write_back(moved, dx, dtheta, slot), [m[2] for m in moved]
+
+            parts = [(f.bodies, f.params, f.static) for f in run.families]
+            (dx, dtheta), new = jax.lax.scan(colour, (dx, dtheta), (parts, run.body_slot, run_lams))
+            updated.append(new)
         return (dx, dtheta, updated), None
 
     (dx, dtheta, lams), _ = jax.lax.scan(iteration, (table.dx, table.dtheta, start), None, length=iterations)
     result = list(multipliers)
     for f in range(len(families)):  # back to node order
-        colours_with = [c for c, fs in enumerate(present) if f in fs]
-        if not colours_with:
-            continue
-        order = np.concatenate([colours[c].nodes[f].array for c in colours_with])
-        values = jnp.concatenate([lams[c][present[c].index(f)] for c in colours_with])
-        result[f] = values[np.argsort(order)]
+        order, values = [], []
+        for (first, _), run, run_lams in zip(bounds, runs, lams, strict=True):
+            if run is None:
+                if f in present[first]:
+                    order.append(colours[first].nodes[f].array)
+                    values.append(run_lams[present[first].index(f)])
+            elif f in run.fs:
+                k = run.fs.index(f)
+                for r, nodes in enumerate(run.nodes[k]):
+                    order.append(nodes)
+                    values.append(run_lams[k][r, : len(nodes)])
+        if order:
+            result[f] = jnp.concatenate(values)[np.argsort(np.concatenate(order))]
     return dx, dtheta, result
 
 
-def _jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list):
+def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list):
     """Every node at once from the same dX; each body moves by the mean of its nodes' requests."""
     n = table.dx.shape[0] - 1
     used = [f for f, family in enumerate(families) if len(family.bodies)]
@@ -128,10 +224,16 @@ def solve(
     multipliers = [jnp.zeros((len(f.bodies), f.num_multipliers), dtype) for f in all_families]
     if any(len(f.bodies) for f in all_families):
         table = body_table(model, predicted, h)
+        if options.initial_guess == "tree" and tree.forest(structure)[0].size:
+            # Start from the exact linear solve of the tree's point constraints, each joint's point
+            # multiplier at the impulse it took there (families[0] are the joints).
+            dx, dtheta, kappa = tree.initial_guess(model, table)
+            table = table._replace(dx=dx, dtheta=dtheta)
+            multipliers[0] = multipliers[0].at[:, joints.POINT : joints.POINT + 3].set(kappa)
         if options.jacobi:
-            dx, dtheta, multipliers = _jacobi(all_families, table, options.iterations, multipliers)
+            dx, dtheta, multipliers = jacobi(all_families, table, options.iterations, multipliers)
         else:
-            dx, dtheta, multipliers = _gauss_seidel(structure.colours, all_families, table, options.iterations,
+            dx, dtheta, multipliers = gauss_seidel(structure.colours, all_families, table, options.iterations,
                                                     multipliers)  # fmt: skip
     else:
         dx = dtheta = jnp.zeros((n + 1, 3), dtype)
@@ -149,7 +251,7 @@ def restitution(
         return state
     families = constraints.restitution_families(model, contacts, h)
     table = body_table(model, state, h)
-    dv, dw, _ = _gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
+    dv, dw, _ = gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
                               list(normal))  # fmt: skip
     n = model.num_bodies
     return State(pos=state.pos, quat=state.quat, vel=state.vel + dv[:n], ang_vel=state.ang_vel + dw[:n])

@@ -1,0 +1,416 @@
+"""dbdjax side by side with Brax (positional, generalized, mjx pipelines) on the same MJCF model,
+dt and control, in one run: physics steps/s at several batch sizes, compile times (step, a
+100-step rollout, grad of that rollout), the accuracy of a dropped humanoid (largest joint gap,
+spurious energy gain), and the cost of differentiable rollouts (time and peak memory of grad
+through 100 / 1000 steps, with and without rematerialisation).
+
+    python benchmarks/brax_comparison.py            # quick: batches 1 16, short timings
+    python benchmarks/brax_comparison.py --full     # batches 1 16 256 4096, longer timings
+
+Writes benchmarks/results/brax_comparison_<platform>.json and prints a table with ratios to
+Brax positional. Needs the [brax] extra (brax, mujoco). The models are Brax's own humanoid.xml and
+ant.xml (copies in tests/assets), simulated at the XML's timestep by every engine, one physics
+step per call of each engine's step (dbdjax: 1 substep), the same random controls in the
+actuators' ctrlrange. MuJoCo's ctrl and ours are the same vector (a motor's torque = gear * ctrl).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import dbdjax as dbd
+
+ASSETS = Path(__file__).resolve().parents[1] / "tests" / "assets"
+RESULTS = Path(__file__).resolve().parent / "results"
+DBD_ITERATIONS = 4  # Gauss-Seidel iterations per substep for dbdjax (Brax's humanoid.xml asks MuJoCo for 8)
+
+
+@dataclasses.dataclass(frozen=True)
+class Engine:
+    """One engine on one model: pure functions over its own state type."""
+
+    name: str
+    dt: float
+    num_controls: int
+    control_range: np.ndarray  # (num_controls, 2)
+    init: Callable[[], Any]  # () -> state
+    step: Callable[[Any, jnp.ndarray], Any]  # (state, control) -> state
+    joint_gap: Callable[[Any], jnp.ndarray]  # state -> largest joint gap (m)
+    energy: Callable[[Any], jnp.ndarray]  # state -> kinetic + potential energy (J)
+    height: Callable[[Any], jnp.ndarray]  # state -> summed body heights (a differentiable scalar)
+    step_remat: Callable[[Any, jnp.ndarray], Any] | None = None  # step rematerialised for reverse mode
+
+
+# ------------------------------------------------------------------------------------------- dbdjax
+
+
+def dbdjax_engine(xml: Path, solver: str) -> Engine:
+    kwargs = {"substeps": 1, "iterations": DBD_ITERATIONS}
+    if solver != "dbd":
+        kwargs["solver"] = solver
+    model = dbd.load_mjcf(xml, **kwargs)
+    remat_model = dbd.load_mjcf(xml, checkpoint=True, **kwargs)
+    control_range = np.asarray(model.control_range)
+    return Engine(
+        name=f"dbdjax-{solver}",
+        dt=model.options.dt,
+        num_controls=model.num_controls,
+        control_range=control_range,
+        init=lambda: dbd.init(model),
+        step=lambda state, control: dbd.step(model, state, control),
+        step_remat=lambda state, control: dbd.step(remat_model, state, control),
+        joint_gap=lambda state: jnp.max(dbd.diagnostics.joint_gaps(model, state)),
+        energy=lambda state: dbd.diagnostics.energy(model, state),
+        height=lambda state: jnp.sum(state.pos[:, 2]),
+    )
+
+
+# --------------------------------------------------------------------------------------------- Brax
+
+
+def brax_engine(xml: Path, backend: str) -> Engine:
+    import importlib
+
+    from brax import kinematics
+    from brax import math as brax_math
+    from brax.io import mjcf
+
+    pipeline = importlib.import_module(f"brax.{backend}.pipeline")
+    system = mjcf.load(str(xml))
+    parents = np.asarray(system.link_parents)
+    jointed = np.flatnonzero(parents >= 0)  # the free root has no joint gap
+    inertia = system.link.inertia
+    gravity = jnp.asarray(system.gravity)
+
+    def centres(state):
+        """Centre of mass position and velocity of each link, world frame."""
+        offset = jax.vmap(brax_math.rotate)(inertia.transform.pos, state.x.rot)
+        return state.x.pos + offset, state.xd.vel + jnp.cross(state.xd.ang, offset)
+
+    def energy(state):
+        pos, vel = centres(state)
+        rotation = jax.vmap(brax_math.quat_to_3x3)(state.x.rot)
+        world_inertia = rotation @ inertia.i @ jnp.swapaxes(rotation, -1, -2)
+        kinetic = 0.5 * jnp.sum(inertia.mass * jnp.sum(vel**2, -1))
+        kinetic += 0.5 * jnp.sum(jnp.einsum("ni,nij,nj->n", state.xd.ang, world_inertia, state.xd.ang))
+        return kinetic - jnp.sum(inertia.mass * (pos @ gravity))
+
+    def joint_gap(state):
+        _, _, anchor_parent, anchor_child = kinematics.world_to_joint(system, state.x, state.xd)
+        return jnp.max(jnp.linalg.norm(anchor_parent.pos[jointed] - anchor_child.pos[jointed], axis=-1))
+
+    def step_remat(state, control):
+        return jax.checkpoint(pipeline.step, static_argnums=())(system, state, control)
+
+    mj = system.mj_model
+    return Engine(
+        name=f"brax-{backend}",
+        dt=float(system.opt.timestep),
+        num_controls=system.act_size(),
+        control_range=np.asarray(mj.actuator_ctrlrange),
+        init=lambda: pipeline.init(system, system.init_q, jnp.zeros(system.qd_size())),
+        step=lambda state, control: pipeline.step(system, state, control),
+        step_remat=step_remat,
+        joint_gap=joint_gap,
+        energy=energy,
+        height=lambda state: jnp.sum(centres(state)[0][:, 2]),
+    )
+
+
+def make_engines(xml: Path, names: list[str]) -> tuple[list[Engine], dict[str, str]]:
+    """The engines that load `xml`, and for each one that refuses it, the reason."""
+    engines, skipped = [], {}
+    for name in names:
+        family, variant = name.split("-", 1)
+        try:
+            engines.append(dbdjax_engine(xml, variant) if family == "dbdjax" else brax_engine(xml, variant))
+        except (TypeError, ValueError, ImportError) as error:
+            skipped[name] = f"{type(error).__name__}: {error}"
+            print(f"  {name} on {xml.name}: skipped ({skipped[name]})", flush=True)
+    return engines, skipped
+
+
+# ---------------------------------------------------------------------------------------- measures
+
+
+def _seconds(function, *args) -> float:
+    started = time.perf_counter()
+    jax.block_until_ready(function(*args))
+    return time.perf_counter() - started
+
+
+def random_controls(engine: Engine, shape: tuple[int, ...], seed: int = 0) -> jnp.ndarray:
+    low, high = engine.control_range[:, 0], engine.control_range[:, 1]
+    unit = np.random.default_rng(seed).uniform(size=shape + (engine.num_controls,))
+    return jnp.asarray(low + unit * (high - low), jnp.float32)
+
+
+def rollout_function(engine: Engine, step: Callable | None = None):
+    step = step or engine.step
+    return lambda state, controls: jax.lax.scan(lambda s, c: (step(s, c), None), state, controls)[0]
+
+
+def throughput(engine: Engine, batch: int, seconds: float, chunk: int = 10) -> dict:
+    """Physics steps per second of `batch` copies stepped together by one jitted call of
+    `chunk` steps (so Python overhead does not count)."""
+    state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), engine.init())
+    controls = random_controls(engine, (chunk, batch))
+    batched = jax.vmap(engine.step)
+    run = jax.jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0])
+    compile_s = _seconds(run, state)
+    calls, started = 0, time.perf_counter()
+    while time.perf_counter() - started < seconds or calls < 2:
+        state = run(state)
+        calls += 1
+    jax.block_until_ready(state)
+    elapsed = time.perf_counter() - started
+    return {
+        "batch": batch,
+        "steps_per_s": round(batch * calls * chunk / elapsed, 1),
+        "us_per_batched_step": round(elapsed / (calls * chunk) * 1e6, 1),
+        "first_call_s": round(compile_s, 2),
+    }
+
+
+def compile_times(engine: Engine, horizon: int = 100) -> dict:
+    """Seconds to lower and compile step, a `horizon`-step rollout and grad of its final height
+    with respect to the controls."""
+    state = engine.init()
+    controls = random_controls(engine, (horizon,))
+    rollout = rollout_function(engine)
+
+    def compile_seconds(function, *args):
+        started = time.perf_counter()
+        jax.jit(function).lower(*args).compile()
+        return round(time.perf_counter() - started, 2)
+
+    return {
+        "step_s": compile_seconds(engine.step, state, controls[0]),
+        "rollout100_s": compile_seconds(rollout, state, controls),
+        "grad_rollout100_s": compile_seconds(jax.grad(lambda c: engine.height(rollout(state, c))), controls),
+    }
+
+
+def dropped_accuracy(engine: Engine, seconds: float = 1.0) -> dict:
+    """Zero control from the initial pose for `seconds`: the largest joint gap over the run and
+    the largest rise of mechanical energy above its start (contacts and damping only remove
+    energy, so any rise is the integrator's or solver's)."""
+    steps = int(round(seconds / engine.dt))
+    state = engine.init()
+
+    def one(s, _):
+        s = engine.step(s, jnp.zeros(engine.num_controls))
+        return s, (engine.joint_gap(s), engine.energy(s))
+
+    final, (gaps, energies) = jax.jit(lambda s: jax.lax.scan(one, s, None, length=steps))(state)
+    start = float(engine.energy(state))
+    return {
+        "steps": steps,
+        "max_joint_gap_m": float(jnp.max(gaps)),
+        "max_energy_gain_J": float(jnp.max(energies) - start),
+        "energy_change_J": float(energies[-1] - start),
+        "finite": bool(np.all(np.isfinite(np.asarray(jax.tree.leaves(final)[0])))),
+    }
+
+
+def gradient_cost(engine: Engine, horizon: int, remat: bool) -> dict:
+    """Time of one grad of the final height w.r.t. the controls through `horizon` steps, and the
+    compiled program's temporary memory (XLA's memory analysis: deterministic, unlike RSS)."""
+    step = engine.step_remat if remat else engine.step
+    if step is None:
+        return {"skipped": "no rematerialised step"}
+    state = engine.init()
+    controls = random_controls(engine, (horizon,))
+    rollout = rollout_function(engine, step)
+    grad = jax.jit(jax.grad(lambda c: engine.height(rollout(state, c))))
+    compiled = grad.lower(controls).compile()
+    memory = compiled.memory_analysis()
+    temp = getattr(memory, "temp_size_in_bytes", None) if memory is not None else None
+    compiled(controls)  # warm
+    started = time.perf_counter()
+    result = jax.block_until_ready(compiled(controls))
+    return {
+        "horizon": horizon,
+        "remat": remat,
+        "grad_s": round(time.perf_counter() - started, 3),
+        "temp_memory_MB": None if temp is None else round(temp / 2**20, 1),
+        "grad_finite": bool(jnp.all(jnp.isfinite(result))),
+    }
+
+
+# ------------------------------------------------------------------------------------------- main
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--full", action="store_true", help="batches 1 16 256 4096, longer timings, 1000-step grads")
+    parser.add_argument("--models", nargs="+", default=["humanoid", "ant"])
+    parser.add_argument(
+        "--engines",
+        nargs="+",
+        default=["dbdjax-dbd", "dbdjax-impulse", "brax-positional", "brax-generalized", "brax-mjx"],
+    )
+    parser.add_argument("--note", default="", help="appended to the JSON's note (e.g. what else loaded the machine)")
+    parser.add_argument("--plot", type=Path, help="only redraw the plot of an existing results JSON")
+    args = parser.parse_args()
+    if args.plot:
+        plot(args.plot)
+        return
+    batches = [1, 16, 256, 4096] if args.full else [1, 16]
+    seconds = 5.0 if args.full else 1.5
+    horizons = [100, 1000] if args.full else [100]
+
+    try:
+        from rich.progress import Progress
+    except ImportError:  # progress lines only
+        Progress = None
+
+    results: dict[str, Any] = {
+        "settings": {
+            "dt": "each model's MJCF timestep, every engine",
+            "dbdjax": f"1 substep, {DBD_ITERATIONS} iterations, float32",
+            "brax": "the XML's options (brax.io.mjcf.load defaults), float32",
+            "controls": "uniform random in ctrlrange (throughput); zero (dropped accuracy)",
+        },
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "jax": jax.__version__,
+            "device": str(jax.devices()[0]),
+            "device_kind": jax.devices()[0].device_kind,
+            "load_average_1_5_15_min_at_start": [round(x, 2) for x in os.getloadavg()],
+        },
+        "note": "Every engine was measured in this one run, one after another, on the same machine and load: the "
+        "ratios between engines are what this file reports; absolute steps/s depend on what else the machine ran.",
+        "models": {},
+    }
+    if args.note:
+        results["note"] += " " + args.note
+    started = time.perf_counter()
+    for model_name in args.models:
+        xml = ASSETS / f"{model_name}.xml"
+        engines, skipped = make_engines(xml, args.engines)
+        tasks = [(e, "compile", None) for e in engines] + [(e, "batch", b) for e in engines for b in batches]
+        if model_name == "humanoid":
+            tasks += [(e, "accuracy", None) for e in engines]
+            tasks += [(e, "grad", (h, r)) for e in engines for h in horizons for r in (False, True)]
+        per_engine: dict[str, dict] = {e.name: {"dt": e.dt, "throughput": [], "grad": []} for e in engines}
+        progress = Progress() if Progress else None
+        if progress:
+            progress.start()
+            bar = progress.add_task(f"{model_name}", total=len(tasks))
+        for engine, kind, argument in tasks:
+            label = f"{model_name} {engine.name} {kind} {argument if argument is not None else ''}"
+            try:
+                if kind == "compile":
+                    per_engine[engine.name]["compile"] = compile_times(engine)
+                elif kind == "batch":
+                    per_engine[engine.name]["throughput"].append(throughput(engine, argument, seconds))
+                elif kind == "accuracy":
+                    per_engine[engine.name]["dropped"] = dropped_accuracy(engine)
+                else:
+                    per_engine[engine.name]["grad"].append(gradient_cost(engine, *argument))
+            except Exception as error:  # noqa: BLE001 - one engine failing must not lose the others' numbers
+                per_engine[engine.name].setdefault("errors", []).append(f"{kind} {argument}: {error!r:.300}")
+            if progress:
+                progress.update(bar, advance=1, description=label)
+            else:
+                print(label, flush=True)
+        if progress:
+            progress.stop()
+        results["models"][model_name] = per_engine
+        if skipped:
+            results["models"][model_name]["skipped"] = skipped
+        print_table(model_name, per_engine)
+
+    results["machine"]["load_average_1_5_15_min_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    results["machine"]["wall_s"] = round(time.perf_counter() - started, 1)
+    RESULTS.mkdir(exist_ok=True)
+    out = RESULTS / f"brax_comparison_{jax.devices()[0].platform}.json"
+    out.write_text(json.dumps(results, indent=2) + "\n")
+    print(f"wrote {out}")
+    plot(out)
+
+
+def plot(path: Path) -> None:
+    """Steps/s against batch per engine, one panel per model, next to the JSON (<stem>.png)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no plot")
+        return
+    results = json.loads(path.read_text())
+    models = results["models"]
+    figure, axes = plt.subplots(1, len(models), figsize=(5.5 * len(models), 4.2), squeeze=False)
+    for ax, (model_name, per_engine) in zip(axes[0], models.items(), strict=True):
+        for name, data in per_engine.items():
+            if name == "skipped" or not data.get("throughput"):
+                continue
+            batches = [t["batch"] for t in data["throughput"]]
+            rates = [t["steps_per_s"] for t in data["throughput"]]
+            ax.plot(batches, rates, marker="o", label=name)
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xlabel("batch")
+        ax.set_ylabel("physics steps / s")
+        ax.set_title(f"{model_name} ({results['machine']['device_kind']})")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    figure.tight_layout()
+    out = path.with_suffix(".png")
+    figure.savefig(out, dpi=110)
+    print(f"wrote {out}")
+
+
+def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
+    """Steps/s per batch and compile times, each with its ratio to Brax positional."""
+    reference = per_engine.get("brax-positional", {})
+    reference_rate = {t["batch"]: t["steps_per_s"] for t in reference.get("throughput", [])}
+    print(f"\n{model_name}")
+    header = f"{'engine':<18}{'batch':>6}{'steps/s':>12}{'x brax-pos':>11}{'compile grad100 s':>19}{'x brax-pos':>11}"
+    print(header)
+    print("-" * len(header))
+    for name, data in per_engine.items():
+        if name == "skipped":
+            for engine, reason in data.items():
+                print(f"{engine:<18}skipped: {reason:.200}")
+            continue
+        grad_compile = data.get("compile", {}).get("grad_rollout100_s")
+        reference_compile = reference.get("compile", {}).get("grad_rollout100_s")
+        for t in data["throughput"]:
+            rate_ratio = t["steps_per_s"] / reference_rate[t["batch"]] if t["batch"] in reference_rate else None
+            compile_ratio = grad_compile / reference_compile if grad_compile and reference_compile else None
+            print(
+                f"{name:<18}{t['batch']:>6}{t['steps_per_s']:>12.0f}{_ratio(rate_ratio):>11}"
+                f"{grad_compile if grad_compile is not None else '-':>19}{_ratio(compile_ratio):>11}"
+            )
+        if "dropped" in data:
+            d = data["dropped"]
+            print(f"{'':<18}dropped 1 s: max joint gap {d['max_joint_gap_m']:.2e} m, "
+                  f"energy gain {d['max_energy_gain_J']:.2f} J")  # fmt: skip
+        for error in data.get("errors", []):
+            print(f"{'':<18}error: {error}")
+
+
+def _ratio(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,576 @@
+"""Velocity rows of the impulse solver (SI): Jacobians, constraint masses, bias, clamps.
+
+A velocity row is one scalar velocity constraint J v + b (SI (16)) with a Jacobian of the form
+
+    J v = linear . (v_b - v_a) + angular_b . w_b - angular_a . w_a
+
+(SI (28), (47), (109): every row of SI is "b minus a", like C = p_b - p_a (25), (45)); a
+positional row at arms r_a, r_b along n has linear = n, angular_* = r_* x n, an angular row along
+d has linear = 0, angular_a = angular_b = d. A row is solved for an impulse lambda (N s for
+positional rows, N m s for angular ones, SI's lambda' = lambda dt (20)-(23)) that changes the
+velocities by M^-1 J^T lambda, with K = J M^-1 J^T (rows.row_inverse_mass, the same effective mass
+the DBD rows use). Sequential impulses keep the accumulated impulse of every row and clamp it,
+not the increment (Catto 2005, SI [3]). One update rule serves every row:
+
+    d lambda = -mass (J v + b) - mix lambda,   then  lower <= lambda + d lambda <= upper
+
+  rigid  mass = 1 / K, mix = 0: J v + b = 0 after the update, b = beta C / h (Baumgarte, SI (17))
+  soft   a spring-damper of stiffness k and damping c on the error C, taken implicitly over the
+         substep (the impulse h (-k C(t + h) - c C'(t + h)) with C(t + h) = C + h J v):
+         with s = h (h k + c), mass = s / (1 + s K), mix = 1 / (1 + s K), b = k C / (h k + c)
+         (Catto's soft constraints; s = 0 makes the row release whatever it holds)
+  motor  rigid with b = -target speed (SI (124)), |lambda| <= max force h (SI (126))
+
+Inequality rows (contacts (42), limits (120)-(121)) clamp lambda >= 0 and bias a row that is
+not violated by C / h rather than beta C / h: the bodies may close the gap C within this substep
+but no further (speculative: a limit or contact is always in the system, so no active set
+switches on and off inside the differentiated step). Blocks of three rows with a 3x3 K are solved
+at once: the joint point (SI (48)), an angular lock (SI (60), (134), or the hinge's two rows
+(86)-(90) as the plane across its axle) and a ball joint's drive. A block's rows may be
+restricted to the range of a projector P (a slider's plane across its axis, SI (51)): K is then
+inverted as P K P + (1 - P), which maps range(P) to itself.
+
+Each family has a `prepare` (once per substep, at the pose of the start of the substep: rows,
+masses, bias, and the warm start: the previous substep's impulses, masked to what is still
+active, applied to the velocities) and a `solve` (one Gauss-Seidel pass over the node's rows,
+in the shape of `constraints.Family.project`, with the `BodyPair` fields dx, dtheta read as the
+velocity changes dv, dw so far).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dbdjax import math
+from dbdjax.collision import ContactSlots
+from dbdjax.constraints import joints, links
+from dbdjax.constraints import rows as row
+from dbdjax.constraints.rows import BodyPair, BodySet
+from dbdjax.model import Distances, Joints, Model, Springs
+
+# ------------------------------------------------------------------------------------ rows
+
+
+class Rows(NamedTuple):
+    """R scalar rows of one node (leading axis R on every field).
+
+    linear, angular_a, angular_b: (R, 3) the Jacobian (module docstring). turn_a, turn_b: (R, 3)
+    I_a^-1 angular_a, I_b^-1 angular_b. mass, mix, bias (m/s or rad/s), lower, upper: (R,).
+    """
+
+    linear: jnp.ndarray
+    angular_a: jnp.ndarray
+    angular_b: jnp.ndarray
+    turn_a: jnp.ndarray
+    turn_b: jnp.ndarray
+    mass: jnp.ndarray
+    mix: jnp.ndarray
+    bias: jnp.ndarray
+    lower: jnp.ndarray
+    upper: jnp.ndarray
+
+
+class Block(NamedTuple):
+    """Three rows solved together. linear, angular_a, angular_b, turn_a, turn_b: (3, 3), row k
+    on axis 0. mass, mix: (3, 3). bias: (3,). bound: () the largest |lambda| (inf for none)."""
+
+    linear: jnp.ndarray
+    angular_a: jnp.ndarray
+    angular_b: jnp.ndarray
+    turn_a: jnp.ndarray
+    turn_b: jnp.ndarray
+    mass: jnp.ndarray
+    mix: jnp.ndarray
+    bias: jnp.ndarray
+    bound: jnp.ndarray
+
+
+def baumgarte_bias(error, beta, h: float, inequality=False):
+    """b of SI (17): beta C / h; for an inequality row that holds (C > 0), C / h (speculative)."""
+    if inequality is False:
+        return beta * error / h
+    return jnp.where(inequality & (error > 0.0), error / h, beta * error / h)
+
+
+def spring_softness(stiffness, damping, error, h: float):
+    """(s, b) of a spring-damper row over a substep h: s = h (h k + c), b = k C / (h k + c)."""
+    weight = h * stiffness + damping
+    some = weight > 0.0
+    return h * weight, jnp.where(some, stiffness * error / jnp.where(some, weight, 1.0), 0.0)
+
+
+def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper, active, softness=0.0,
+                soft=False) -> Rows:  # fmt: skip
+    """Rows (R,) from their Jacobians (R, 3), bias, bounds and `active` (R,). soft: (R,) bool, the
+    rows that are spring-dampers of softness s (R,); the others are rigid. Inactive rows, and rigid
+    rows that move nothing (K = 0), get mass = mix = 0: they never move."""
+    inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, math.dot(linear, linear))
+    bias, lower, upper = (jnp.broadcast_to(jnp.asarray(x, inverse_mass.dtype), inverse_mass.shape)
+                          for x in (bias, lower, upper))  # fmt: skip
+    solvable = active & (inverse_mass > 0.0)
+    rigid_mass = jnp.where(solvable, 1.0 / jnp.where(solvable, inverse_mass, 1.0), 0.0)
+    soft_mix = 1.0 / (1.0 + softness * inverse_mass)  # s, K >= 0
+    mass = jnp.where(soft, jnp.where(active, softness * soft_mix, 0.0), rigid_mass)
+    mix = jnp.where(soft & active, soft_mix, 0.0)
+    return Rows(linear, angular_a, angular_b, turn_a, turn_b, mass, mix, bias, lower, upper)
+
+
+def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=None, softness=None,
+          bound=jnp.inf) -> Block:  # fmt: skip
+    """A block of three rows (3, 3) with K = J M^-1 J^T in full (SI (48), (60)). projector: P (3, 3)
+    when the rows span only range(P) (rows and bias are already in it), None for all three.
+    softness: s of a soft block (a three-axis spring-damper), None for a rigid one."""
+    turn_a = math.matvec(pair.inv_inertia_a, angular_a)
+    turn_b = math.matvec(pair.inv_inertia_b, angular_b)
+    # K_ij = (1/m_a + 1/m_b) l_i . l_j + g_a,i . I_a^-1 g_a,j + g_b,i . I_b^-1 g_b,j
+    coupling = (
+        (pair.inv_mass_a + pair.inv_mass_b) * jnp.einsum("ik,jk->ij", linear, linear)
+        + jnp.einsum("ik,jk->ij", angular_a, turn_a)
+        + jnp.einsum("ik,jk->ij", angular_b, turn_b)
+    )
+    eye = jnp.eye(3, dtype=coupling.dtype)
+    if softness is None:
+        if projector is not None:
+            coupling = coupling + (eye - projector)  # invert on range(P) only (module docstring)
+        determinant = math.dot(coupling[0], math.cross(coupling[1], coupling[2]))
+        solvable = active & (determinant > 0.0)  # singular only when neither side can move
+        mass = jnp.where(solvable, math.inverse3(jnp.where(solvable, coupling, eye)), 0.0)
+        if projector is not None:
+            mass = projector @ mass @ projector
+        mix = jnp.zeros_like(mass)
+    else:
+        mix = math.inverse3(eye + softness * coupling)
+        mass = jnp.where(active, softness * mix, 0.0)
+        mix = jnp.where(active, mix, 0.0)
+    return Block(linear, angular_a, angular_b, turn_a, turn_b, mass, mix, bias, jnp.asarray(bound, coupling.dtype))
+
+
+def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):
+    """J v of rows (..., 3) at the current velocities V* + dv (dx, dtheta hold dv, dw)."""
+    v_a, v_b = pair.vel_a + pair.dx_a, pair.vel_b + pair.dx_b
+    w_a, w_b = pair.ang_vel_a + pair.dtheta_a, pair.ang_vel_b + pair.dtheta_b
+    return math.dot(linear, v_b - v_a) + math.dot(angular_b, w_b) - math.dot(angular_a, w_a)
+
+
+def _push(pair: BodyPair, linear, turn_a, turn_b, impulse) -> BodyPair:
+    """Apply impulses (K,) along rows (K, 3): M^-1 J^T lambda, +b and -a (SI (23))."""
+    push = impulse @ linear
+    return pair._replace(
+        dx_a=pair.dx_a - pair.inv_mass_a * push,
+        dx_b=pair.dx_b + pair.inv_mass_b * push,
+        dtheta_a=pair.dtheta_a - impulse @ turn_a,
+        dtheta_b=pair.dtheta_b + impulse @ turn_b,
+    )
+
+
+def solve_row(pair: BodyPair, rows: Rows, i: int, impulses: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray]:
+    """One sequential-impulse update of scalar row i (static) of `rows`; impulses: (R,) accumulated."""
+    speed = _relative_speed(pair, rows.linear[i], rows.angular_a[i], rows.angular_b[i])
+    candidate = impulses[i] - rows.mass[i] * (speed + rows.bias[i]) - rows.mix[i] * impulses[i]
+    step = jnp.clip(candidate, rows.lower[i], rows.upper[i]) - impulses[i]
+    pair = _push(pair, rows.linear[i][None], rows.turn_a[i][None], rows.turn_b[i][None], step[None])
+    return pair, impulses.at[i].add(step)
+
+
+def clamp_norm(vector, bound):
+    """vector scaled back onto |vector| <= bound (bound = inf: unchanged), with a finite gradient."""
+    direction, size = math.safe_normalize(vector)
+    limited = jnp.isfinite(bound)  # keep inf out of the products
+    finite_bound = jnp.where(limited, bound, 0.0)
+    return jnp.where(limited & (size > finite_bound), finite_bound * direction, vector)
+
+
+def solve_block(pair: BodyPair, rows: Block, impulse: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray]:
+    """One update of a block (3,): d lambda = -mass (J v + b) - mix lambda, |lambda| <= bound."""
+    speed = _relative_speed(pair, rows.linear, rows.angular_a, rows.angular_b)
+    candidate = impulse - math.matvec(rows.mass, speed + rows.bias) - math.matvec(rows.mix, impulse)
+    step = clamp_norm(candidate, rows.bound) - impulse
+    return _push(pair, rows.linear, rows.turn_a, rows.turn_b, step), impulse + step
+
+
+def _warm(pair: BodyPair, pieces) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(dv (2, 3), dw (2, 3)) of the stored impulses: pieces are (rows with fields linear, turn_a,
+    turn_b (..., 3), their impulses (K,))."""
+    for rows, impulse in pieces:
+        pair = _push(pair, rows.linear.reshape(-1, 3), rows.turn_a.reshape(-1, 3), rows.turn_b.reshape(-1, 3), impulse)
+    return pair.displacements()
+
+
+# ---------------------------------------------------------------------------------- joints
+
+# Impulses of one joint: the ball drive block, the scalar rows, the angular lock and the point.
+DRIVE_BLOCK = slice(0, 3)
+HINGE_DRIVE, MOTOR, ANGLE_LOWER, ANGLE_UPPER, CONE, TRAVEL_LOWER, TRAVEL_UPPER = range(7)
+SCALARS = slice(3, 10)
+LOCK = slice(10, 13)
+POINT = slice(13, 16)
+JOINT_IMPULSES = 16
+# The scalar rows each kind of row in use (joints.rows_in_use) needs.
+_SCALAR_ROWS = (
+    ("hinge_drive", HINGE_DRIVE), ("angular_motor", MOTOR), ("linear_motor", MOTOR), ("has_angle_limits", ANGLE_LOWER),
+    ("has_angle_limits", ANGLE_UPPER), ("has_cone", CONE), ("has_travel_limits", TRAVEL_LOWER),
+    ("has_travel_limits", TRAVEL_UPPER),
+)  # fmt: skip
+
+
+class JointRows(NamedTuple):
+    """Every row of one joint: ball drive (Block), 7 scalar rows (Rows), angular lock, point."""
+
+    drive: Block
+    scalars: Rows
+    lock: Block
+    point: Block
+
+
+def _scalar_rows_in_use(rows: frozenset[str]) -> list[int]:
+    return sorted({index for name, index in _SCALAR_ROWS if name in rows})
+
+
+def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets, pair: BodyPair,
+                  impulses: jnp.ndarray, h: float, rows: frozenset[str]):  # fmt: skip
+    """The velocity rows of one joint at the start of the substep, SI 2.2-2.5, and the warm start.
+
+    pair: the two bodies at the start pose, dx = dtheta = 0, vel/ang_vel = V*. impulses: (16,)
+    the joint's impulses of the previous substep. Returns (JointRows, impulses, dv (2, 3), dw (2, 3)).
+    """
+    dtype = pair.origin_a.dtype
+    beta = joint.baumgarte
+    zero3 = jnp.zeros(3, dtype)
+    eye = jnp.eye(3, dtype=dtype)
+    quat_a, quat_b = pair.current_quats()
+    inf = jnp.asarray(jnp.inf, dtype)
+
+    # Ball drive (DBD 9 as a soft block): the rotation vector of E = X T^-1 in world axes, pulled to
+    # zero by a three-axis spring-damper, |lambda| <= max torque h.
+    if "ball_drive" in rows:
+        goal = math.quat_exp(target.drive)
+        error_rotation = math.quat_multiply(joints.relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
+        error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
+        softness, bias = spring_softness(joint.drive_stiffness, joint.drive_damping, error, h)
+        drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, bias, flag.ball_drive, softness=softness,
+                      bound=joint.drive_max_torque * h)  # fmt: skip
+    else:
+        drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
+
+    # Scalar rows, each (linear, angular_a, angular_b, bias, lower, upper, active, softness).
+    scalar = [(zero3, zero3, zero3, 0.0, 0.0, 0.0, False, 0.0)] * 7
+    if rows & {"hinge_drive", "angular_motor", "has_angle_limits"}:
+        angle, axle = joints.hinge_angle(joint, pair)  # d angle / dt = axle . (w_b - w_a)
+    if "hinge_drive" in rows:  # DBD 9 about the axle as a soft row; the error wrapped to (-pi, pi]
+        offset = angle - target.drive[0]
+        softness, bias = spring_softness(joint.drive_stiffness, joint.drive_damping,
+                                         math.safe_atan2(jnp.sin(offset), jnp.cos(offset)), h)  # fmt: skip
+        torque = joint.drive_max_torque * h
+        scalar[HINGE_DRIVE] = (zero3, axle, axle, bias, -torque, torque, flag.hinge_drive, softness)
+    if rows & {"linear_motor", "has_travel_limits"}:
+        travel, slide, arm_a, arm_b = joints.slider_travel(joint, flag, pair)  # SI (65)-(78)
+        torque_a, torque_b = math.cross(arm_a, slide), math.cross(arm_b, slide)
+    if rows & {"angular_motor", "linear_motor"}:  # SI (124), (126): J v = target speed
+        force = joint.motor_max_force * h
+        motor = (zero3, zero3, zero3, 0.0, 0.0, 0.0, False, 0.0)
+        if "angular_motor" in rows:
+            motor = (zero3, axle, axle, -target.motor, -force, force, flag.angular_motor, 0.0)
+        if "linear_motor" in rows:
+            linear_motor = (slide, torque_a, torque_b, -target.motor, -force, force, flag.linear_motor, 0.0)
+            motor = jax.tree.map(lambda x, y: jnp.where(flag.linear_motor, y, x), motor, linear_motor)
+        scalar[MOTOR] = motor
+    if "has_angle_limits" in rows:  # SI (108)-(121): C_min = angle - lower, C_max = upper - angle
+        active = flag.has_angle_limits
+        lower, upper = angle - joint.lower, joint.upper - angle
+        scalar[ANGLE_LOWER] = (zero3, axle, axle, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
+        scalar[ANGLE_UPPER] = (zero3, -axle, -axle, baumgarte_bias(upper, beta, h, True), 0.0, inf, active, 0.0)
+    if "has_cone" in rows:  # C = cone limit - angle between the twist axes (DBD (81)), >= 0
+        cone_angle, cone_axis = math.angle_between(
+            math.quat_rotate(quat_a, joint.local_axis_a), math.quat_rotate(quat_b, joint.local_axis_b)
+        )
+        bias = baumgarte_bias(joint.cone_limit - cone_angle, beta, h, True)
+        scalar[CONE] = (zero3, -cone_axis, -cone_axis, bias, 0.0, inf, flag.has_cone, 0.0)
+    if "has_travel_limits" in rows:  # SI (65)-(78) on the travel along the slide axis
+        active = flag.has_travel_limits
+        lower, upper = travel - joint.lower, joint.upper - travel
+        scalar[TRAVEL_LOWER] = (slide, torque_a, torque_b, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
+        scalar[TRAVEL_UPPER] = (-slide, -torque_a, -torque_b, baumgarte_bias(upper, beta, h, True), 0.0, inf, active,
+                                0.0)  # fmt: skip
+    linear, angular_a, angular_b = (jnp.stack([entry[k] for entry in scalar]) for k in range(3))
+    bias, lower, upper, softness = (jnp.stack([jnp.asarray(entry[k], dtype) for entry in scalar]) for k in (3, 4, 5, 7))
+    active = jnp.stack([jnp.asarray(entry[6], bool) for entry in scalar])
+    soft = np.arange(7) == HINGE_DRIVE
+    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, soft)
+
+    # Angular lock, a block over the plane across the axle (hinge, planar: SI (86)-(90), the error
+    # the angle between the axes about the axis turning a's toward b's) or over all three axes
+    # (slider, fixed: SI (53), (129), the rotation vector of b away from its rest pose).
+    if "rotation_lock" in rows:
+        axis_a = math.quat_rotate(quat_a, joint.local_axis_a)
+        axis_b = math.quat_rotate(quat_b, joint.local_axis_b)
+        axle_angle, axle_axis = math.angle_between(axis_a, axis_b)
+        bisector, _ = math.safe_normalize(axis_a + axis_b)
+        relative = joints.relative_rotation(joint, quat_a, quat_b)
+        axle_kind = flag.hinge | flag.planar
+        error = jnp.where(axle_kind, axle_angle * axle_axis, math.quat_rotate(quat_a, math.quat_log(relative)))
+        projector = jnp.where(axle_kind, eye - bisector[:, None] * bisector[None, :], eye)
+        bias = math.matvec(projector, baumgarte_bias(error, beta, h))
+        lock = block(pair, jnp.zeros((3, 3), dtype), projector, projector, bias, axle_kind | flag.rotation_locked,
+                     projector=projector)  # fmt: skip
+    else:
+        lock = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
+
+    # Point: C = p_b - p_a (SI (45), (127)) as one block with the 3x3 K (48). A slider keeps the part
+    # across its axis (SI (51)), a planar joint the part along its normal, both acting level with p_b.
+    delta, arm_a, arm_b = joints.joint_points(joint, flag, pair, quat_a, quat_b)  # delta = p_a - p_b
+    projector = None
+    if "slider" in rows or "planar" in rows:
+        axis = math.quat_rotate(quat_a, joint.local_axis_a)
+        along_axis = axis[:, None] * axis[None, :]
+        projector = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
+        arm_a = arm_a - math.matvec(eye - projector, delta)
+        delta = math.matvec(projector, delta)
+    rows_p = eye if projector is None else projector
+    point = block(pair, rows_p, math.cross(arm_a[None], rows_p), math.cross(arm_b[None], rows_p),
+                  baumgarte_bias(-delta, beta, h), True, projector=projector)  # fmt: skip
+
+    result = JointRows(drive, scalars, lock, point)
+    dv, dw = _warm(pair, [(drive, impulses[DRIVE_BLOCK]), (scalars, impulses[SCALARS]), (lock, impulses[LOCK]),
+                          (point, impulses[POINT])])  # fmt: skip
+    return result, impulses, dv, dw
+
+
+def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, rows: frozenset[str]):
+    """One pass over a joint's rows: drive and motor first, then limits, the angular lock and the
+    point last (so that the joint gap has the last word, as in the DBD solver)."""
+    pair = BodyPair.of(bodies)
+    if "ball_drive" in rows:
+        pair, value = solve_block(pair, joint_rows.drive, impulses[DRIVE_BLOCK])
+        impulses = impulses.at[DRIVE_BLOCK].set(value)
+    scalars = impulses[SCALARS]
+    for i in _scalar_rows_in_use(rows):
+        pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
+    impulses = impulses.at[SCALARS].set(scalars)
+    if "rotation_lock" in rows:
+        pair, value = solve_block(pair, joint_rows.lock, impulses[LOCK])
+        impulses = impulses.at[LOCK].set(value)
+    pair, value = solve_block(pair, joint_rows.point, impulses[POINT])
+    impulses = impulses.at[POINT].set(value)
+    return *pair.displacements(), impulses
+
+
+# ---------------------------------------------------------------------------------- contacts
+
+CONTACT_IMPULSES_PER_POINT = 3  # lambda_n, lambda_t1, lambda_t2
+
+
+class ContactRows(NamedTuple):
+    """The rows of one shape pair's P points: normal and two tangents per point (SI 2.1).
+
+    directions, angular_a, angular_b, turn_a, turn_b: (P, 3, 3), rows (n, t1, t2) on axis 1.
+    tangent_coupling: (P, 2, 2) K of the two friction rows. normal_mass, normal_mix, normal_bias:
+    (P,) the normal row's update (module docstring). friction: (P,) mu. active: (P,) bool.
+    """
+
+    directions: jnp.ndarray
+    angular_a: jnp.ndarray
+    angular_b: jnp.ndarray
+    turn_a: jnp.ndarray
+    turn_b: jnp.ndarray
+    tangent_coupling: jnp.ndarray
+    normal_mass: jnp.ndarray
+    normal_mix: jnp.ndarray
+    normal_bias: jnp.ndarray
+    friction: jnp.ndarray
+    active: jnp.ndarray
+
+
+def _clamp_disc(vector, bound):
+    """A 2-vector scaled back onto |vector| <= bound (the friction cone of SI (31))."""
+    padded = jnp.concatenate([vector, jnp.zeros(1, vector.dtype)])
+    return clamp_norm(padded, bound)[:2]
+
+
+def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, impulses: jnp.ndarray, h: float,
+                     beta: float, compliance: float, slow: float):  # fmt: skip
+    """The contact and friction rows of one shape pair at the start of the substep, and the warm start.
+
+    The points were found at the predicted pose X* (collision.detect, so that a fast body is caught
+    before it passes through); the rows are taken where those body points are at the start pose:
+    C = (p_b - p_a) . n (SI (25)), arms r_a, r_b, Jacobians (28)-(30), K (34)-(36). Normal bias:
+    Baumgarte (37) on a penetration, C / h on a gap (speculative); with restitution (SI (39)-(41))
+    the larger of that separation speed and e |v_n| for impacts faster than `slow` (m/s; v_n the
+    normal speed before the solve). With contact compliance alpha > 0 the normal row is a spring
+    of stiffness 1 / alpha. Friction: mu_d where the points were sliding at the start of the
+    substep, mu_s where they stuck (DBD 7.1). impulses: (3 P,) of the previous substep, kept where
+    the slot is still active. Returns (ContactRows, impulses, dv (2, 3), dw (2, 3)).
+    """
+    pair = BodyPair.of(bodies)
+    points = slots.active.shape[0]
+    delta, arm_a, arm_b = row.anchor_points(pair, slots.local_a, slots.local_b, world[0], world[1], pair.quat_a,
+                                            pair.quat_b)  # fmt: skip
+    normal = slots.normal
+    tangent = math.any_perpendicular(normal)
+    directions = jnp.stack([normal, tangent, math.cross(normal, tangent)], axis=1)  # (P, 3, 3)
+    angular_a = math.cross(arm_a[:, None, :], directions)
+    angular_b = math.cross(arm_b[:, None, :], directions)
+    inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, 1.0)  # (P, 3), SI (34)-(36)
+    tangents = directions[:, 1:]
+    tangent_coupling = (
+        (pair.inv_mass_a + pair.inv_mass_b) * jnp.einsum("pik,pjk->pij", tangents, tangents)
+        + jnp.einsum("pik,pjk->pij", angular_a[:, 1:], turn_a[:, 1:])
+        + jnp.einsum("pik,pjk->pij", angular_b[:, 1:], turn_b[:, 1:])
+    )
+    separation = -math.dot(delta, normal)  # SI (25) at the start pose
+    active = slots.active & (inverse_mass[:, 0] > 0.0)
+    if compliance > 0.0:  # a spring of stiffness 1 / alpha, no damping
+        softness, bias = spring_softness(1.0 / compliance, 0.0, separation, h)
+        normal_rows = scalar_rows(pair, normal, angular_a[:, 0], angular_b[:, 0], bias, 0.0, jnp.inf, active, softness,
+                                  True)  # fmt: skip
+    else:
+        bias = baumgarte_bias(separation, beta, h, True)
+        normal_rows = scalar_rows(pair, normal, angular_a[:, 0], angular_b[:, 0], bias, 0.0, jnp.inf, active)
+    bounce = slots.approach < -slow
+    normal_bias = jnp.where(bounce, jnp.minimum(normal_rows.bias, slots.restitution * slots.approach), normal_rows.bias)
+    friction = jnp.where(slots.sliding, slots.dynamic_friction, slots.friction)
+    rows = ContactRows(directions, angular_a, angular_b, turn_a, turn_b, tangent_coupling, normal_rows.mass,
+                       normal_rows.mix, normal_bias, friction, active)  # fmt: skip
+
+    lam = jnp.where(active[:, None], impulses.reshape(points, 3), 0.0)
+    lam_n = jnp.maximum(lam[:, 0], 0.0)
+    lam_t = jax.vmap(_clamp_disc)(lam[:, 1:], friction * lam_n)
+    lam = jnp.concatenate([lam_n[:, None], lam_t], axis=1)
+    dv, dw = _warm(pair, [(Rows(directions, angular_a, angular_b, turn_a, turn_b, *(None,) * 5), lam.reshape(-1))])
+    return rows, lam.reshape(-1), dv, dw
+
+
+def solve_contacts(rows: ContactRows, bodies: BodySet, impulses: jnp.ndarray):
+    """One pass over a pair's points, each point's friction then its normal row (SI 2.1).
+
+    Friction: the accumulated tangent impulse steps against the slip u with the effective mass
+    along it, u.u / u.K u, and is held in the disc |lambda_t| <= mu lambda_n (SI (31)); a step
+    along u rather than K^-1 u makes a sliding contact's friction oppose its slip exactly. Normal:
+    the rigid (or soft) row update with lambda_n >= 0 (SI (42)).
+    """
+    pair = BodyPair.of(bodies)
+    points = rows.active.shape[0]
+    lam = impulses.reshape(points, 3)
+    for i in range(points):  # P <= 8, static: each point sees the previous points' impulses
+        slip = _relative_speed(pair, rows.directions[i, 1:], rows.angular_a[i, 1:], rows.angular_b[i, 1:])
+        squared = slip @ slip
+        along = slip @ (rows.tangent_coupling[i] @ slip)
+        ok = along > 1e-30 * jnp.maximum(squared, 1e-30)
+        candidate = lam[i, 1:] - jnp.where(ok, squared / jnp.where(ok, along, 1.0), 0.0) * slip
+        candidate = _clamp_disc(candidate, rows.friction[i] * lam[i, 0])
+        step = jnp.where(rows.active[i], candidate - lam[i, 1:], 0.0)
+        pair = _push(pair, rows.directions[i, 1:], rows.turn_a[i, 1:], rows.turn_b[i, 1:], step)
+
+        speed = _relative_speed(pair, rows.directions[i, 0], rows.angular_a[i, 0], rows.angular_b[i, 0])
+        candidate = lam[i, 0] - rows.normal_mass[i] * (speed + rows.normal_bias[i]) - rows.normal_mix[i] * lam[i, 0]
+        step_n = jnp.maximum(candidate, 0.0) - lam[i, 0]
+        pair = _push(pair, rows.directions[i, :1], rows.turn_a[i, :1], rows.turn_b[i, :1], step_n[None])
+        lam = lam.at[i].add(jnp.concatenate([step_n[None], step]))
+    return *pair.displacements(), lam.reshape(-1)
+
+
+# ------------------------------------------------------------------------------------ links
+
+
+def prepare_link(link: Springs | Distances, world: np.ndarray, bodies: BodySet, impulses: jnp.ndarray, h: float,
+                 beta: float, spring: bool):  # fmt: skip
+    """One row along the line between the two anchor points, C = |p_b - p_a| - length: a spring-
+    damper (DBD 8.1 as a soft row) or a rigid distance (Baumgarte, SI (17)). impulses: (1,)."""
+    pair = BodyPair.of(bodies)
+    direction, length, arm_a, arm_b = links.line(link.local_anchor_a, link.local_anchor_b, world, pair)
+    along = -direction  # from p_a to p_b: C grows with (v_b - v_a) . along
+    linear, angular_a, angular_b = along[None], math.cross(arm_a, along)[None], math.cross(arm_b, along)[None]
+    if spring:
+        softness, bias = spring_softness(link.stiffness, link.damping, length - link.rest_length, h)
+        rows = scalar_rows(pair, linear, angular_a, angular_b, bias[None], -jnp.inf, jnp.inf, True, softness, True)
+    else:
+        bias = baumgarte_bias(length - link.length, beta, h)
+        rows = scalar_rows(pair, linear, angular_a, angular_b, bias[None], -jnp.inf, jnp.inf, True)
+    dv, dw = _warm(pair, [(rows, impulses)])
+    return rows, impulses, dv, dw
+
+
+def solve_link(rows: Rows, bodies: BodySet, impulses: jnp.ndarray):
+    """One update of a link's row."""
+    pair, impulses = solve_row(BodyPair.of(bodies), rows, 0, impulses)
+    return *pair.displacements(), impulses
+
+
+# ------------------------------------------------------------------------------------ families
+
+
+class VelocityFamily(NamedTuple):
+    """One constraint family for the impulse solver, in the order of `Structure.family_bodies`.
+
+    bodies: (M, S) int. params, static: as `constraints.Family`. prepare(params, static, bodies,
+    impulses) -> (rows, impulses, dv (S, 3), dw (S, 3)) for one node at the start of the substep.
+    solve(rows, static, bodies, impulses) -> (dv (S, 3), dw (S, 3), impulses): one pass, in the
+    shape of `constraints.Family.project` (the solver vmaps both). num_impulses: per node.
+    """
+
+    name: str
+    bodies: np.ndarray
+    params: Any
+    static: Any
+    prepare: Callable
+    solve: Callable
+    num_impulses: int
+
+
+def _nothing_to_prepare(params, static, bodies: BodySet, impulses):
+    zero = jnp.zeros_like(bodies.dx)
+    return None, impulses, zero, zero
+
+
+def _nothing_to_solve(rows, static, bodies: BodySet, impulses):
+    return bodies.dx, bodies.dtheta, impulses
+
+
+def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float,
+             dtype) -> list[VelocityFamily]:  # fmt: skip
+    """Every constraint family of `model` as velocity rows, with this substep's control and contact
+    slots. User forces have no rows here (the impulse solver applies them before the solve, SI
+    (12)); ropes and volumes are refused at finalize. Their entries keep the family order."""
+    structure, options = model.structure, model.options
+    tables = structure.family_bodies()
+    world = structure.num_bodies
+    beta = options.baumgarte
+    used = joints.rows_in_use(structure)
+    targets = joints.targets(structure, control, dtype)
+
+    def on_world(table: np.ndarray) -> np.ndarray:
+        return table == world
+
+    def link_family(name, table, params, spring):
+        prepare = functools.partial(prepare_link, h=h, beta=beta, spring=spring)
+        return VelocityFamily(name, table, params, on_world(table), prepare,
+                              lambda r, _, bodies, lam: solve_link(r, bodies, lam), 1)  # fmt: skip
+
+    def nothing(name, table, params=None):
+        return VelocityFamily(name, table, params, None, _nothing_to_prepare, _nothing_to_solve, 0)
+
+    result = [
+        VelocityFamily(
+            "joints", tables[0], (model.joints, targets), joints.flags(structure),
+            lambda p, flag, bodies, lam: prepare_joint(p[0], flag, p[1], BodyPair.of(bodies), lam, h, used),
+            lambda r, _, bodies, lam: solve_joint(r, bodies, lam, used), JOINT_IMPULSES,
+        ),
+        link_family("springs", tables[1], model.springs, spring=True),
+        link_family("distances", tables[2], model.distances, spring=False),
+        nothing("ropes", tables[3]),
+        nothing("volumes", tables[4]),
+    ]  # fmt: skip
+    force_tables = tables[5 : 5 + len(structure.force_groups)]
+    result += [nothing(group.name, table) for group, table in zip(structure.force_groups, force_tables, strict=True)]
+    slow = 2.0 * math.safe_norm(model.gravity) * h  # as the DBD restitution pass: slower impacts do not bounce
+    for group, slots in zip(structure.contact_groups, contacts, strict=True):
+        prepare = functools.partial(prepare_contacts, h=h, beta=beta, compliance=options.contact_compliance, slow=slow)
+        result.append(VelocityFamily(group.name, group.bodies.array, slots, on_world(group.bodies.array), prepare,
+                                     lambda r, _, bodies, lam: solve_contacts(r, bodies, lam),
+                                     CONTACT_IMPULSES_PER_POINT * group.num_points))  # fmt: skip
+    return result

@@ -1,0 +1,48 @@
+"""Batched simulation past one device: the batch axis sharded over a `jax.sharding.Mesh`.
+
+Every copy of a batched rollout is independent, so the batch axis splits over devices with no
+communication: put the batched state and controls on a one-axis mesh with `shard_batch` and call
+the jitted, vmapped step or rollout as usual; XLA partitions the computation along the batch and
+the results come back sharded the same way. The model (its parameters) is replicated.
+
+    mesh = dbd.sharding.batch_mesh()                       # all local devices, axis "batch"
+    states = dbd.sharding.shard_batch(states, mesh)        # leading axis B, B % devices == 0
+    final, trajectory = jax.jit(jax.vmap(dbd.rollout, in_axes=(None, 0, 0)))(model, states, controls)
+
+On CPU, XLA_FLAGS=--xla_force_host_platform_device_count=4 (set before jax is imported) gives
+four host devices to try it; across machines, `jax.distributed.initialize()` first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+BATCH_AXIS = "batch"
+
+
+def batch_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
+    """A one-axis mesh named "batch" over `devices` (default: every device JAX sees)."""
+    return Mesh(np.asarray(devices if devices is not None else jax.devices()), (BATCH_AXIS,))
+
+
+def shard_batch(tree: Any, mesh: Mesh) -> Any:
+    """Place every array of `tree` with its leading (batch) axis split over the mesh's devices.
+    Raises ValueError if a leading axis does not divide evenly (name the leaf's shape)."""
+    devices = mesh.devices.size
+    for leaf in jax.tree.leaves(tree):
+        if np.ndim(leaf) == 0 or np.shape(leaf)[0] % devices:
+            raise ValueError(
+                f"shard_batch: an array of shape {np.shape(leaf)} has no leading batch axis divisible by the "
+                f"mesh's {devices} devices"
+            )
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
+
+
+def replicate(tree: Any, mesh: Mesh) -> Any:
+    """Place every array of `tree` whole on every device of the mesh (for a model's parameters)."""
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))

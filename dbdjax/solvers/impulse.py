@@ -1,0 +1,124 @@
+"""SI: velocity-level sequential impulses with Baumgarte bias, semi-implicit Euler.
+
+One substep of h seconds (pipeline.substep with solver="impulse"):
+
+    V* = V + h M^-1 F_ext                     SI (12), `predict`: gravity, actuators, user forces
+    slots = collision.detect(X, X + h V*)     contact points found where the bodies are headed
+    rows at the start pose X                  constraints/velocity_rows.py: J, K, bias (17), (40)
+    warm start: V* += M^-1 J^T lambda_prev    the last substep's impulses (State.impulses)
+    repeat `iterations` times:                (lax.scan)
+        for each colour, in order:            the colouring of the DBD solver (Structure.colours)
+            every node of each family at once (jax.vmap): its rows in turn, each impulse
+            accumulated and clamped (SI (20)-(23), (32)-(33), (126); lambda_n >= 0)
+    V' = V* + dV,  X' = X + h V'              SI (12), `integrate`
+
+The colour sweep is `solvers.dbd.gauss_seidel` itself, fed velocity rows instead of positional
+ones: the BodySet fields dx, dtheta carry the velocity changes. Only velocities are solved; the
+position error a step leaves behind is corrected by the bias of the next (Baumgarte, SI (17)),
+not projected away, which is the difference to DBD this solver exists to measure.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from dbdjax import integrator, math
+from dbdjax.collision import ContactSlots
+from dbdjax.constraints import Family
+from dbdjax.constraints import velocity_rows as velocity
+from dbdjax.model import Model, State
+from dbdjax.solvers import dbd
+
+
+def impulse_shapes(model: Model) -> list[tuple[int, int]]:
+    """(M_f, m_f) of every family's impulses, in family order (the layout of State.impulses)."""
+    structure = model.structure
+    tables = structure.family_bodies()
+    per_node = [velocity.JOINT_IMPULSES, 1, 1, 0, 0] + [0] * len(structure.force_groups)
+    per_node += [velocity.CONTACT_IMPULSES_PER_POINT * group.num_points for group in structure.contact_groups]
+    return [(len(table), size) for table, size in zip(tables, per_node, strict=True)]
+
+
+def initial_impulses(model: Model, dtype=None) -> tuple[jnp.ndarray, ...]:
+    """Zero impulses for every family: a cold start."""
+    dtype = model.bodies.mass.dtype if dtype is None else dtype
+    return tuple(jnp.zeros(shape, dtype) for shape in impulse_shapes(model))
+
+
+def predict(model: Model, state: State, h: float, control: jnp.ndarray | None) -> State:
+    """V* = V + h M^-1 F_ext (SI (12)), and X* = X + h V* where the bodies would go unconstrained.
+
+    integrator.predict gives gravity, torque actuators and the implicit gyroscopic term; user forces
+    (`add_force`) are added here explicitly, evaluated at the start of the substep: the
+    semi-implicit Euler of SI (12) (a stiff user force needs a small step, unlike in the DBD solver,
+    which solves them implicitly).
+    """
+    predicted = integrator.predict(model, state, h, control)
+    structure = model.structure
+    if not structure.force_groups:
+        return predicted
+    n = structure.num_bodies
+    force = jnp.zeros_like(state.pos)
+    torque = jnp.zeros_like(state.pos)
+    for group, params in zip(structure.force_groups, model.forces, strict=True):
+        bodies = group.bodies.array  # (M, k), no world (add_force refuses it)
+        pieces = (state.pos[bodies], state.quat[bodies], state.vel[bodies], state.ang_vel[bodies])
+        f, t = jax.vmap(group.function)(*pieces, params)
+        force = force + jax.ops.segment_sum(f.reshape(-1, 3), bodies.reshape(-1), n)
+        torque = torque + jax.ops.segment_sum(t.reshape(-1, 3), bodies.reshape(-1), n)
+    rotation = math.quat_to_matrix(state.quat)
+    inv_inertia = jnp.einsum("nij,nj,nkj->nik", rotation, 1.0 / model.bodies.inertia, rotation)
+    vel = predicted.vel + h * force / model.bodies.mass[:, None]
+    ang_vel = predicted.ang_vel + h * math.matvec(inv_inertia, torque)
+    return State(pos=state.pos + h * vel, quat=integrator.displaced_quat(state.quat, h * ang_vel), vel=vel,
+                 ang_vel=ang_vel)  # fmt: skip
+
+
+def solve(
+    model: Model, state: State, predicted: State, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...],
+    h: float,
+) -> tuple[jnp.ndarray, jnp.ndarray, tuple[jnp.ndarray, ...]]:  # fmt: skip
+    """Velocity changes (dv (N, 3), dw (N, 3)) that satisfy the velocity constraints from V*.
+
+    state: the start of the substep (its pose is where the rows are taken; its impulses, or zeros
+    for None, warm-start the solve). predicted: V* (`predict`). contacts: this substep's slots.
+    Returns dv, dw and every family's accumulated impulses (State.impulses' layout).
+    """
+    structure, options = model.structure, model.options
+    n = structure.num_bodies
+    dtype = state.pos.dtype
+    stored = state.impulses if state.impulses is not None else initial_impulses(model, dtype)
+    start = State(pos=state.pos, quat=state.quat, vel=predicted.vel, ang_vel=predicted.ang_vel)
+    table = dbd.body_table(model, start, h)
+    prepared, impulses = [], []
+    warm_dv = warm_dw = jnp.zeros((n + 1, 3), dtype)
+    for family, lam in zip(velocity.families(model, control, contacts, h, dtype), stored, strict=True):
+        lam = jnp.asarray(lam, dtype)
+        if len(family.bodies):
+            bodies = jax.tree.map(lambda column, f=family: column[f.bodies], table)  # (M, S, ...)
+            rows, lam, dv, dw = jax.vmap(family.prepare)(family.params, family.static, bodies, lam)
+            index = family.bodies.reshape(-1)
+            warm_dv = warm_dv + jax.ops.segment_sum(dv.reshape(-1, 3), index, n + 1)
+            warm_dw = warm_dw + jax.ops.segment_sum(dw.reshape(-1, 3), index, n + 1)
+        else:
+            rows = None
+        prepared.append(Family(family.name, family.bodies, rows, family.static, family.solve, family.num_impulses))
+        impulses.append(lam)
+    if not any(len(f.bodies) for f in prepared):
+        zero = jnp.zeros((n, 3), dtype)
+        return zero, zero, tuple(impulses)
+    table = table._replace(dx=warm_dv, dtheta=warm_dw)  # the world's row stays 0: its inverse mass is 0
+    if options.jacobi:
+        dv, dw, impulses = dbd.jacobi(prepared, table, options.iterations, impulses)
+    else:
+        dv, dw, impulses = dbd.gauss_seidel(structure.colours, prepared, table, options.iterations, impulses)
+    return dv[:n], dw[:n], tuple(impulses)
+
+
+def integrate(state: State, predicted: State, dv: jnp.ndarray, dw: jnp.ndarray, impulses, h: float) -> State:
+    """SI (12): V' = V* + dV, X' = X + h V', q' = exp(h w' / 2) q; the impulses are kept."""
+    vel = predicted.vel + dv
+    ang_vel = predicted.ang_vel + dw
+    return State(pos=state.pos + h * vel, quat=integrator.displaced_quat(state.quat, h * ang_vel), vel=vel,
+                 ang_vel=ang_vel, impulses=tuple(impulses))  # fmt: skip

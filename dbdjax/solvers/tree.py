@@ -1,0 +1,265 @@
+"""Initial guess for Algorithm 1: an exact linear solve of the point constraints over the joint tree.
+
+Why. Gauss-Seidel moves a correction one joint per colour sweep, so from the guess dX = 0 it
+cannot build the tension of a long chain within a few iterations (DBD 10.1: "it requires N - 1
+updates to propagate a displacement from one end of the chain to the other, even with perfect
+ordering"); the smooth error modes of a chain of N joints decay by only 1 - O(1/N^2) per sweep.
+A 20-link chain whose free end whips carries several times its weight at the root, and every
+substep the prediction X* stretches each joint by about (tension / link mass) h^2. With 8 substeps
+of 10 sweeps the red-black iterations left 2.8 mm of it (5.7 mm with the magnitude form of the
+point constraint); over-relaxation (xi = 1.7: 1.1 mm), symmetric colour order (worse per sweep),
+and warm-starting the multipliers from the previous substep (unstable: it diverged at the whip)
+do not remove it, only O(N^2) sweeps do (8 x 100: 0.17 mm).
+Algorithm 1 allows "a better initial guess"; this module supplies the best linear one, the
+solution at X* of
+
+    (J M~^-1 J^T + alpha) kappa = -c(X*),      dX = M~^-1 J^T kappa                  DBD (49)
+
+for the point constraint of every ball, hinge and fixed joint in its vector form c = p_a - p_b
+(DBD (64)-(66), the block `rows.point_block` solves joint by joint). The non-linear Gauss-Seidel
+iterations then start from it, with each joint's point multiplier set to its kappa, and only
+have the non-linear remainder and the other rows left to remove. In the linear limit the guess
+is exactly the point they converge to from dX = 0. Angular rows, limits, drives, contacts,
+sliders and the joints that close a loop are left to the iterations.
+
+How. Bodies and joints form a forest (a joint closing a loop is left out). The saddle-point system
+[[M~, J^T], [J, -alpha]] [dX; -kappa] = [0; -c] is eliminated from the leaves to the roots and
+back-substituted without fill-in, in time linear in the number of joints (Baraff 1996,
+"Linear-time dynamics using Lagrange multipliers"). A level of the tree is one step of a
+`lax.scan`, all the (joint, child body) pairs of the level at once: sequential in the depth of
+the tree, parallel across it. Writing S_j = alpha + J_jb D_b^-1 J_jb^T for a joint j whose child
+body b has the eliminated block D_b (its mass plus the stiffness its own children add):
+
+    leaves -> roots:  z_j = -c_j - J_jb D_b^-1 z_b;   D_p += J_jp^T S_j^-1 J_jp;   z_p += J_jp^T S_j^-1 z_j
+    roots -> leaves:  kappa_j = S_j^-1 (z_j - J_jp dX_p);   dX_b = D_b^-1 (z_b + J_jb^T kappa_j)
+
+with D_b = M~_b and z_b = 0 before the children of b are added, and dX = 0 for the world.
+The schedule (`schedule`) is static: numpy on the host, at trace time.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dbdjax import math
+from dbdjax.constraints import joints as joint_family
+from dbdjax.constraints.rows import BodyPair, BodySet
+from dbdjax.model import BALL, FIXED, HINGE, Model, Structure
+
+# Joint kinds whose point constraint is a full 3-D one (a slider's acts only across its axis).
+POINT_KINDS = (BALL, HINGE, FIXED)
+
+
+def schedule(
+    body_a: np.ndarray, body_b: np.ndarray, kind: np.ndarray, num_bodies: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levels of the joint forest, leaves first. Host side, numpy, at trace time.
+
+    body_a/b: (J,) solver body indices (num_bodies stands for the world); kind: (J,) joint kinds.
+    Returns (tree_joint, tree_body, tree_parent), each (L, W) int32. Slot w of level l holds a
+    joint, its child body (the side away from the root) and its parent body (num_bodies for the
+    world). A floating tree's root body has joint J (none). Empty slots hold (J, N, N). The
+    children of every body sit at earlier levels. No tree joint: arrays of shape (0, 1).
+    Trees are rooted at the world where attached, else at their lowest body index; a joint that
+    would close a loop (or joins two static sides) is left out, as is every slider.
+    """
+    num_joints, world = len(body_a), num_bodies
+    group = list(range(num_bodies + 1))  # union-find over bodies and the world
+
+    def find(x: int) -> int:
+        while group[x] != x:
+            group[x] = group[group[x]]
+            x = group[x]
+        return x
+
+    neighbours: list[list[tuple[int, int]]] = [[] for _ in range(num_bodies + 1)]
+    for j in range(num_joints):
+        a, b = int(body_a[j]), int(body_b[j])
+        if kind[j] not in POINT_KINDS or find(a) == find(b):
+            continue
+        group[find(a)] = find(b)
+        neighbours[a].append((j, b))
+        neighbours[b].append((j, a))
+
+    up_joint = np.full(num_bodies + 1, num_joints)
+    up_body = np.full(num_bodies + 1, world)
+    seen = np.zeros(num_bodies + 1, dtype=bool)
+    order: list[int] = []  # bodies, every parent before its children
+    for root in [world] + [b for b in range(num_bodies) if neighbours[b]]:
+        if seen[root]:
+            continue
+        seen[root] = True
+        if root != world:
+            order.append(root)
+        stack = [root]
+        while stack:
+            node = stack.pop()
+            for j, other in neighbours[node]:
+                if not seen[other]:
+                    seen[other] = True
+                    up_joint[other], up_body[other] = j, node
+                    order.append(other)
+                    stack.append(other)
+    if not order:
+        empty = np.zeros((0, 1), dtype=np.int32)
+        return empty, empty, empty
+
+    height = np.zeros(num_bodies + 1, dtype=np.int64)  # 0 for a leaf, 1 + the highest child
+    for body in reversed(order):
+        if up_body[body] != world:
+            height[up_body[body]] = max(height[up_body[body]], height[body] + 1)
+    levels = [sorted(b for b in order if height[b] == k) for k in range(int(height[order].max()) + 1)]
+    width = max(len(members) for members in levels)
+    tree_joint = np.full((len(levels), width), num_joints, dtype=np.int32)
+    tree_body = np.full((len(levels), width), world, dtype=np.int32)
+    tree_parent = np.full((len(levels), width), world, dtype=np.int32)
+    for k, members in enumerate(levels):
+        for w, body in enumerate(members):
+            tree_joint[k, w], tree_body[k, w], tree_parent[k, w] = up_joint[body], body, up_body[body]
+    return tree_joint, tree_body, tree_parent
+
+
+def _mm(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """a (..., n, k) @ b (..., k, m) as k broadcast products (no dot op: it fuses on CPU)."""
+    total = a[..., :, 0, None] * b[..., None, 0, :]
+    for k in range(1, a.shape[-1]):
+        total = total + a[..., :, k, None] * b[..., None, k, :]
+    return total
+
+
+def _mv(a: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
+    """a (..., n, k) @ v (..., k) as k broadcast products."""
+    total = a[..., :, 0] * v[..., None, 0]
+    for k in range(1, a.shape[-1]):
+        total = total + a[..., :, k] * v[..., None, k]
+    return total
+
+
+def _transpose(a: jnp.ndarray) -> jnp.ndarray:
+    return jnp.swapaxes(a, -1, -2)
+
+
+def _inverse6(matrix: jnp.ndarray) -> jnp.ndarray:
+    """Inverse of (..., 6, 6) matrices by 3x3 blocks (Schur complement of the top-left block).
+
+    The blocks here are M~ plus what the children add: the translational block is m 1 plus a
+    positive semi-definite term, so it and its Schur complement are invertible.
+    """
+    a, b = matrix[..., :3, :3], matrix[..., :3, 3:]
+    c, d = matrix[..., 3:, :3], matrix[..., 3:, 3:]
+    a_inv = math.inverse3(a)
+    a_inv_b, c_a_inv = _mm(a_inv, b), _mm(c, a_inv)
+    s_inv = math.inverse3(d - _mm(c, a_inv_b))
+    top_right = -_mm(a_inv_b, s_inv)
+    top_left = a_inv - _mm(top_right, c_a_inv)
+    bottom_left = -_mm(s_inv, c_a_inv)
+    top = jnp.concatenate([top_left, top_right], axis=-1)
+    return jnp.concatenate([top, jnp.concatenate([bottom_left, s_inv], axis=-1)], axis=-2)
+
+
+def _point_jacobian(sign: np.ndarray, arm: jnp.ndarray) -> jnp.ndarray:
+    """d(delta p)/d(dx, dtheta) of one side of a joint, (..., 3, 6) = sign (1, -[arm]x): DBD (65)."""
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=arm.dtype), arm.shape[:-1] + (3, 3))
+    return jnp.asarray(sign, arm.dtype)[..., None, None] * jnp.concatenate([eye, -math.skew(arm)], axis=-1)
+
+
+def forest(structure: Structure) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`schedule` of a model's joints (static: numpy, evaluated when the step is traced)."""
+    return schedule(structure.joint_body_a.array, structure.joint_body_b.array, structure.joint_kind.array,
+                    structure.num_bodies)  # fmt: skip
+
+
+def point_gaps(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """(delta, arm_a, arm_b), each (J, 3): the point constraint of every joint at X* + dX (DBD (53)-(54)).
+
+    bodies: the solver's per-body table, (N + 1, ...) with the world as the last row.
+    """
+    structure = model.structure
+    ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
+    pairs = jax.tree.map(lambda column: column[ends], bodies)
+
+    def one(joint, flag, two):
+        pair = BodyPair.of(two)
+        return joint_family.joint_points(joint, flag, pair, *pair.current_quats())
+
+    return jax.vmap(one)(model.joints, joint_family.flags(structure), pairs)
+
+
+def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """Solve the linearised point constraints of the joint tree at X* exactly.
+
+    bodies: the solver's per-body table at X* (dx = dtheta = 0), (N + 1, ...) with the world as
+    the last row: inv_mass (N + 1,) 1/kg, inv_inertia (N + 1, 3, 3) M~^-1 (0 for the world).
+    Returns dx (N + 1, 3) m, dtheta (N + 1, 3) rad (world row 0) and kappa (J, 3) kg m, the
+    integrated impulse times h on body a of each joint (-kappa on b; 0 outside the tree).
+    """
+    inv_mass, inv_inertia = bodies.inv_mass, bodies.inv_inertia
+    structure = model.structure
+    tree_joint, tree_body, tree_parent = forest(structure)
+    world, num_joints = structure.num_bodies, structure.num_joints
+    dtype = inv_inertia.dtype
+    delta, arm_a, arm_b = point_gaps(model, bodies)
+
+    # Body blocks M~ = diag(m 1, I~) (6, 6). The world row is a stand-in identity: empty slots
+    # (body = world, zero Jacobians, alpha = 1) then invert identities and leave the world at 0.
+    is_world = np.arange(world + 1) == world
+    mass = 1.0 / jnp.where(is_world, 1.0, inv_mass)
+    inertia = math.inverse3(jnp.where(is_world[:, None, None], jnp.eye(3, dtype=dtype), inv_inertia))
+    zero33 = jnp.zeros((world + 1, 3, 3), dtype)
+    top = jnp.concatenate([mass[:, None, None] * jnp.eye(3, dtype=dtype), zero33], axis=-1)
+    blocks = jnp.concatenate([top, jnp.concatenate([zero33, inertia], axis=-1)], axis=-2)
+
+    # Per slot (L, W): the joint's Jacobian toward its child body and toward its parent body.
+    empty = tree_joint == num_joints
+    joint = np.where(empty, 0, tree_joint)
+    child_is_a = structure.joint_body_a.array[joint] == tree_body
+    sign = np.where(empty, 0.0, np.where(child_is_a, 1.0, -1.0))
+    parent_sign = np.where(tree_parent == world, 0.0, -sign)
+    j_child = _point_jacobian(sign, jnp.where(child_is_a[..., None], arm_a[joint], arm_b[joint]))
+    j_parent = _point_jacobian(parent_sign, jnp.where(child_is_a[..., None], arm_b[joint], arm_a[joint]))
+    gap = jnp.where(empty[..., None], 0.0, delta[joint])  # c_j = p_a - p_b at X*
+    alpha = jnp.where(empty, 1.0, model.joints.regularization[joint])  # S = 1 in empty slots
+
+    # Each level's inputs, carry and outputs are packed into one array apiece: on CPU every array a
+    # loop step slices or updates is one more kernel, and the levels run one after another.
+    indices = np.stack([tree_body, tree_parent], axis=-1)  # (L, W, 2)
+    inputs = jnp.concatenate(
+        [j_child, j_parent, gap[..., None], jnp.broadcast_to(alpha[..., None, None], gap.shape + (1,))], axis=-1
+    )  # (L, W, 3, 14)
+    eye3 = jnp.eye(3, dtype=dtype)
+
+    def eliminate(carry, level):
+        index, packed = level  # carry: [D_b | z_b] (N + 1, 6, 7), the children added so far
+        jc, jp, c, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12], packed[..., 0, 13]
+        own = carry[index[:, 0]]
+        d_inv, z_body = _inverse6(own[..., :6]), own[..., 6]
+        jc_d = _mm(jc, d_inv)
+        s_inv = math.inverse3(alpha[:, None, None] * eye3 + _mm(jc_d, _transpose(jc)))
+        z_joint = -c - _mv(jc_d, z_body)
+        jp_s = _mm(_transpose(jp), s_inv)
+        carry = carry.at[index[:, 1]].add(jnp.concatenate([_mm(jp_s, jp), _mv(jp_s, z_joint)[..., None]], axis=-1))
+        width = d_inv.shape[0]
+        factors = [d_inv.reshape(width, 36), s_inv.reshape(width, 9), z_body, z_joint]
+        return carry, jnp.concatenate(factors, axis=-1)  # (W, 54)
+
+    start = jnp.concatenate([blocks, jnp.zeros((world + 1, 6, 1), dtype)], axis=-1)
+    _, factors = jax.lax.scan(eliminate, start, (indices, inputs))
+
+    def substitute(x, level):
+        index, packed, factors = level
+        jc, jp = packed[..., :6], packed[..., 6:12]
+        width = factors.shape[0]
+        d_inv, s_inv = factors[:, :36].reshape(width, 6, 6), factors[:, 36:45].reshape(width, 3, 3)
+        z_body, z_joint = factors[:, 45:51], factors[:, 51:54]
+        kappa = _mv(s_inv, z_joint - _mv(jp, x[index[:, 1]]))
+        x = x.at[index[:, 0]].set(_mv(d_inv, z_body + _mv(_transpose(jc), kappa)))
+        return x, kappa
+
+    x, kappa_slots = jax.lax.scan(
+        substitute, jnp.zeros((world + 1, 6), dtype), (indices, inputs, factors), reverse=True
+    )
+    # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
+    kappa = jnp.zeros((num_joints + 1, 3), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
+    return x[:, :3], x[:, 3:], kappa

@@ -1,0 +1,439 @@
+"""dbdjax/RagdollStand-v0 and dbdjax/RagdollTrack-v0: the driven ragdoll of `dbdjax.ragdoll`.
+
+Both share the model, the action mapping, the observation, the fall and the pushes
+(`RagdollEnv`); they differ in the reward (and Track adds the reference to the observation).
+
+The doll (`ragdoll.build`, default 1.8 m, 70 kg, 15 bodies, 14 joints, a floor) stands in its
+build pose facing a random heading. Its 14 joint drives (DBD section 9) are the actuators: 26
+drive targets, 3 per ball joint (waist, neck, shoulders, hips: a rotation vector in the parent's
+frame) and 1 per hinge (elbows, wrists, knees, ankles: an angle), all from the build pose.
+
+Action (26,) in [-1, 1]: the drive targets, mapped linearly onto the joints' target ranges
+(`doll.control_low` .. `doll.control_high`, from the joint limits): -1 the low end, +1 the high
+end, 0 the middle (not the build pose where a range is one-sided: a knee's 0 is 1.2 rad of
+flexion). Entries outside [-1, 1] are clipped; a NaN/inf entry ends the episode with
+info["nonfinite_action"].
+
+Observation (float32), in the heading frame (world rotated by the pelvis' yaw, so the heading
+never shows): pelvis height (1); the pelvis' and the torso's up axes (3 + 3); the other 14 bodies'
+positions relative to the pelvis (42); the pelvis' linear and angular velocity (3 + 3); the joint
+positions in the layout of the drive targets (26) and their rates x 0.1 (26); the previous action
+(26). 133 numbers for Stand; Track adds the reference targets of the next step (26) and the sine
+and cosine of the reference phase (2): 161.
+
+Termination: the pelvis centre below `fall_height` (default 0.55 x its standing height), or a
+non-finite action or physics state (info flags). Truncation: `max_episode_steps` (300 when
+registered: 10 s at 30 Hz). Physics: dt = 1/60 s with the ragdoll module's substeps and
+iterations, `frame_skip` 2.
+
+Pushes: at each step, with probability dt / `push_interval` (one push every `push_interval`
+seconds on average), the torso's velocity changes by a horizontal kick of random direction and a
+magnitude uniform in `push_speed` (m/s). info["push"] is the kick of the step (zeros without one).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+import dbdjax as dbd
+from dbdjax import math, ragdoll
+from dbdjax.envs.core import DbdFuncEnv, EnvState, joint_coordinates, yaw_rotate_inverse
+from dbdjax.envs.wrappers import DbdEnv, DbdVectorEnv
+
+
+class RagdollState(NamedTuple):
+    """Task variables: time () s since the start (+ the reference phase offset for Track),
+    previous_action (26,), push (3,) m/s the kick of the last step."""
+
+    time: jnp.ndarray
+    previous_action: jnp.ndarray
+    push: jnp.ndarray
+
+
+def _hashable(value: Any) -> Any:
+    return tuple(sorted(value.items())) if isinstance(value, Mapping) else value
+
+
+class RagdollEnv(DbdFuncEnv):
+    """The shared part of the ragdoll tasks (see the module docstring); subclasses set the reward.
+
+    height (m), mass (kg), drive_stiffness, drive_damping, max_torque: `ragdoll.build`'s
+    (None: its defaults). push_interval: s between pushes on average (None: no pushes).
+    push_speed: (low, high) m/s. fall_height: m, the pelvis height that ends the episode (None:
+    0.55 x the standing height). smooth_weight: weight of the action-change penalty.
+    """
+
+    default_max_episode_steps = 300
+    observation_extra = 0  # numbers a subclass appends
+
+    def __init__(
+        self,
+        height: float = ragdoll.REFERENCE_HEIGHT,
+        mass: float = ragdoll.REFERENCE_MASS,
+        drive_stiffness: float | Mapping[str, float] | None = None,
+        drive_damping: float | Mapping[str, float] | None = None,
+        max_torque: float | Mapping[str, float] | None = None,
+        push_interval: float | None = None,
+        push_speed: tuple[float, float] = (0.5, 1.5),
+        fall_height: float | None = None,
+        smooth_weight: float = 0.1,
+        dt: float = ragdoll.DT,
+        substeps: int = ragdoll.SUBSTEPS,
+        iterations: int = ragdoll.ITERATIONS,
+        frame_skip: int = 2,
+        max_episode_steps: int | None = None,
+        config: dict[str, Any] | None = None,
+    ):
+        base = dict(
+            height=height, mass=mass, drive_stiffness=_hashable(drive_stiffness),
+            drive_damping=_hashable(drive_damping), max_torque=_hashable(max_torque), push_interval=push_interval,
+            push_speed=tuple(push_speed), fall_height=fall_height, smooth_weight=smooth_weight, dt=dt,
+            substeps=substeps, iterations=iterations, frame_skip=frame_skip, max_episode_steps=max_episode_steps,
+        )  # fmt: skip
+        if push_interval is not None and not push_interval > 0.0:
+            raise ValueError(f"{type(self).__name__}: push_interval must be positive or None, got {push_interval!r}")
+        low_speed, high_speed = (float(v) for v in push_speed)
+        if not 0.0 <= low_speed <= high_speed:
+            raise ValueError(f"{type(self).__name__}: push_speed must be (low, high) with 0 <= low <= high")
+        builder, doll = ragdoll.build(
+            height=height, mass=mass, drive_stiffness=drive_stiffness, drive_damping=drive_damping,
+            max_torque=max_torque,
+        )  # fmt: skip
+        model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations)
+        if model.num_controls != doll.num_controls:
+            raise ValueError("RagdollEnv: the doll must be the only thing with controls in its model")
+        self.doll = doll
+        self.joint_names = tuple(doll.controls)  # in control order
+        self.joint_indices = tuple(doll.joints[name] for name in self.joint_names)
+        self.joint_kinds = tuple(doll.joint_kinds[name] for name in self.joint_names)
+        self.pelvis = doll.bodies["pelvis"]
+        self.torso = doll.bodies["torso"]
+        self.others = tuple(index for name, index in doll.bodies.items() if name != "pelvis")
+        self.rest_height = float(doll.rest_height)
+        self.fall_height = 0.55 * self.rest_height if fall_height is None else float(fall_height)
+        self.push_interval = None if push_interval is None else float(push_interval)
+        self.push_speed = (low_speed, high_speed)
+        self.smooth_weight = float(smooth_weight)
+        super().__init__(
+            model,
+            control_low=doll.control_low,
+            control_high=doll.control_high,
+            frame_skip=frame_skip,
+            max_episode_steps=max_episode_steps,
+            config={**base, **(config or {})},
+        )
+
+    # ------------------------------------------------------------------------ measurements
+    def heading(self, physics: dbd.State) -> jnp.ndarray:
+        """() rad, yaw of the pelvis' forward (+x at build) axis about world z."""
+        forward = math.quat_rotate(physics.quat[self.pelvis], jnp.array([1.0, 0.0, 0.0], physics.quat.dtype))
+        return math.safe_atan2(forward[1], forward[0])
+
+    def up(self, physics: dbd.State, body: int) -> jnp.ndarray:
+        """(3,) the world direction of a body's build-time z axis."""
+        return math.quat_rotate(physics.quat[body], jnp.array([0.0, 0.0, 1.0], physics.quat.dtype))
+
+    def joints(self, physics: dbd.State) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """Joint positions (26,) rad and rates (26,) rad/s in the drive-target layout."""
+        return joint_coordinates(self.model, physics, self.joint_indices, self.joint_kinds)
+
+    def pelvis_height(self, state: EnvState) -> jnp.ndarray:
+        return state.physics.pos[self.pelvis, 2]
+
+    # ------------------------------------------------------------------------ task hooks
+    def initial_time(self, key: jnp.ndarray) -> jnp.ndarray:
+        return jnp.zeros((), self.dtype)
+
+    def task_initial(self, key: jnp.ndarray):
+        yaw_key, time_key = jax.random.split(key)
+        physics = dbd.init(self.model)
+        yaw = jax.random.uniform(yaw_key, (), self.dtype, -jnp.pi, jnp.pi)
+        # Turn the standing doll about the vertical through its feet (the world origin).
+        c, s = jnp.cos(yaw), jnp.sin(yaw)
+        x, y = physics.pos[:, 0], physics.pos[:, 1]
+        pos = jnp.stack([c * x - s * y, s * x + c * y, physics.pos[:, 2]], axis=-1)
+        turn = math.quat_exp(jnp.stack([0.0 * yaw, 0.0 * yaw, yaw]))
+        quat = math.quat_multiply(jnp.broadcast_to(turn, physics.quat.shape), physics.quat)
+        physics = dbd.State(pos=pos, quat=quat, vel=physics.vel, ang_vel=physics.ang_vel)
+        task = RagdollState(
+            time=self.initial_time(time_key),
+            previous_action=jnp.zeros((self.action_size,), self.dtype),
+            push=jnp.zeros((3,), self.dtype),
+        )
+        return physics, task
+
+    def _push(self, key: jnp.ndarray) -> jnp.ndarray:
+        if self.push_interval is None:
+            return jnp.zeros((3,), self.dtype)
+        when, direction, size = jax.random.split(key, 3)
+        pushed = jax.random.uniform(when, (), self.dtype) < self.dt / self.push_interval
+        angle = jax.random.uniform(direction, (), self.dtype, -jnp.pi, jnp.pi)
+        speed = jax.random.uniform(size, (), self.dtype, *self.push_speed)
+        kick = speed * jnp.stack([jnp.cos(angle), jnp.sin(angle), 0.0 * angle])
+        return jnp.where(pushed, kick, 0.0)
+
+    def task_before_physics(self, state: EnvState, action: jnp.ndarray, key: jnp.ndarray) -> dbd.State:
+        physics = state.physics
+        return dbd.State(
+            pos=physics.pos,
+            quat=physics.quat,
+            vel=physics.vel.at[self.torso].add(self._push(key)),
+            ang_vel=physics.ang_vel,
+        )
+
+    def task_update(self, state: EnvState, action: jnp.ndarray, physics: dbd.State) -> RagdollState:
+        # The same key split as _advance, so the kick recorded is the one applied.
+        _, step_key = jax.random.split(state.key)
+        return RagdollState(time=state.task.time + self.dt, previous_action=action, push=self._push(step_key))
+
+    def observe_body(self, state: EnvState) -> jnp.ndarray:
+        """The 133 numbers every ragdoll task observes (module docstring)."""
+        physics = state.physics
+        yaw = self.heading(physics)
+        pelvis = physics.pos[self.pelvis]
+        others = physics.pos[np.asarray(self.others)] - pelvis
+        position, rate = self.joints(physics)
+        return jnp.concatenate([
+            pelvis[2:3],
+            yaw_rotate_inverse(yaw, self.up(physics, self.pelvis)),
+            yaw_rotate_inverse(yaw, self.up(physics, self.torso)),
+            yaw_rotate_inverse(yaw, others).reshape(-1),
+            yaw_rotate_inverse(yaw, physics.vel[self.pelvis]),
+            yaw_rotate_inverse(yaw, physics.ang_vel[self.pelvis]),
+            position,
+            0.1 * rate,
+            state.task.previous_action,
+        ])  # fmt: skip
+
+    def task_observation(self, state: EnvState) -> jnp.ndarray:
+        return self.observe_body(state)
+
+    def task_failed(self, state: EnvState) -> jnp.ndarray:
+        return self.pelvis_height(state) < self.fall_height
+
+    def task_info(self, state: EnvState) -> dict[str, jnp.ndarray]:
+        return {"pelvis_height": self.pelvis_height(state), "push": state.task.push}
+
+    def smooth_penalty(self, state: EnvState, action: jnp.ndarray) -> jnp.ndarray:
+        return -self.smooth_weight * jnp.mean((action - state.task.previous_action) ** 2)
+
+    def render_scene(self, state: EnvState):
+        """The doll and the floor from a camera that follows the pelvis."""
+        from dbdjax import render  # noqa: PLC0415 (pictures are optional)
+
+        camera = render.camera_looking_at((0.0, 0.0, 0.9), distance=4.0, azimuth=-60.0, elevation=15.0)
+        return self.model, state.physics, {"camera": camera, "track": self.pelvis}
+
+
+class RagdollStand(RagdollEnv):
+    """dbdjax/RagdollStand-v0: stay upright and in place under random pushes.
+
+    Everything but the reward is `RagdollEnv`'s (module docstring); pushes every 2 s on average,
+    0.5-1.5 m/s on the torso. Reward per step, the sum of:
+      alive   = `alive_bonus` (1.0) while the episode runs,
+      upright = -`upright_weight` (1.0) x (1 - z of the torso's up axis) (0 standing straight),
+      height  = -`height_weight` (2.0) x |pelvis height - standing height| (m),
+      drift   = -`drift_weight` (0.1) x |horizontal pelvis velocity|^2 ((m/s)^2),
+      smooth  = -`smooth_weight` (0.1) x mean((action - previous action)^2).
+    info: "pelvis_height", "push", the reward terms and the flags.
+    """
+
+    reward_terms = ("alive", "upright", "height", "drift", "smooth")
+
+    def __init__(
+        self,
+        push_interval: float | None = 2.0,
+        alive_bonus: float = 1.0,
+        upright_weight: float = 1.0,
+        height_weight: float = 2.0,
+        drift_weight: float = 0.1,
+        **kwargs,
+    ):
+        self.alive_bonus = float(alive_bonus)
+        self.upright_weight = float(upright_weight)
+        self.height_weight = float(height_weight)
+        self.drift_weight = float(drift_weight)
+        config = dict(alive_bonus=alive_bonus, upright_weight=upright_weight, height_weight=height_weight,
+                      drift_weight=drift_weight)  # fmt: skip
+        super().__init__(push_interval=push_interval, config=config, **kwargs)
+
+    def task_reward(self, state: EnvState, action: jnp.ndarray, next_state: EnvState) -> dict[str, jnp.ndarray]:
+        physics = next_state.physics
+        speed = physics.vel[self.pelvis, :2]
+        return {
+            "alive": jnp.asarray(self.alive_bonus, self.dtype),
+            "upright": -self.upright_weight * (1.0 - self.up(physics, self.torso)[2]),
+            "height": -self.height_weight * jnp.abs(self.pelvis_height(next_state) - self.rest_height),
+            "drift": -self.drift_weight * jnp.sum(speed**2),
+            "smooth": self.smooth_penalty(state, action),
+        }
+
+
+# Reference motion of RagdollTrack: marching in place with arm swing, joint targets
+# q_ref(t) = offset + amplitude sin(2 pi t / period). Entries: joint -> (offset, amplitude), a
+# rotation vector (x, y, z) for a ball joint (parent frame = world axes of the standing doll:
+# a leg or arm swings forward about -y), an angle for a hinge. The right side is the left half a
+# period later (amplitude negated).
+MARCH = {
+    "hip_l": ((0.0, -0.3, 0.0), (0.0, -0.3, 0.0)),
+    "hip_r": ((0.0, -0.3, 0.0), (0.0, 0.3, 0.0)),
+    "knee_l": (0.55, 0.55),
+    "knee_r": (0.55, -0.55),
+    "ankle_l": (0.1, 0.1),
+    "ankle_r": (0.1, -0.1),
+    "shoulder_l": ((0.0, 0.0, 0.0), (0.0, 0.35, 0.0)),
+    "shoulder_r": ((0.0, 0.0, 0.0), (0.0, -0.35, 0.0)),
+    "elbow_l": (0.4, 0.25),
+    "elbow_r": (0.4, -0.25),
+}
+
+
+class RagdollTrack(RagdollEnv):
+    """dbdjax/RagdollTrack-v0: follow a procedurally generated reference motion.
+
+    The reference is a march in place with arm swing (`MARCH`): every drive target follows
+    q_ref(t) = offset + amplitude sin(2 pi t / `period`) (period 1.2 s), the legs and arms of the
+    two sides half a period apart; no data is loaded. Each episode starts at a random phase.
+    Everything else is `RagdollEnv`'s (module docstring; no pushes by default); the observation
+    adds q_ref at the end of the step (26) and (sin, cos) of the phase (2). Reward per step:
+      pose     = `pose_weight` (1.0) x exp(-`pose_scale` (4.0) x mean((q - q_ref)^2)), in (0, 1],
+      velocity = `velocity_weight` (0.1) x exp(-0.1 x mean((dq - dq_ref)^2)),
+      upright  = -`upright_weight` (0.5) x (1 - z of the torso's up axis),
+      alive    = `alive_bonus` (0.2),
+      smooth   = -`smooth_weight` (0.1) x mean((action - previous action)^2),
+    with q, dq the joint positions and rates (drive-target layout) after the step and q_ref, dq_ref
+    the reference at that time. info["pose_error"]: the rms of q - q_ref (rad).
+    """
+
+    reward_terms = ("pose", "velocity", "upright", "alive", "smooth")
+    observation_extra = 28
+
+    def __init__(
+        self,
+        period: float = 1.2,
+        pose_weight: float = 1.0,
+        pose_scale: float = 4.0,
+        velocity_weight: float = 0.1,
+        upright_weight: float = 0.5,
+        alive_bonus: float = 0.2,
+        push_interval: float | None = None,
+        **kwargs,
+    ):
+        if not period > 0.0:
+            raise ValueError(f"RagdollTrack: period must be positive, got {period!r}")
+        self.period = float(period)
+        self.pose_weight = float(pose_weight)
+        self.pose_scale = float(pose_scale)
+        self.velocity_weight = float(velocity_weight)
+        self.upright_weight = float(upright_weight)
+        self.alive_bonus = float(alive_bonus)
+        config = dict(period=period, pose_weight=pose_weight, pose_scale=pose_scale, velocity_weight=velocity_weight,
+                      upright_weight=upright_weight, alive_bonus=alive_bonus)  # fmt: skip
+        # The reference's offset and amplitude vectors, built on the doll's control layout.
+        _, doll = ragdoll.build(floor=False)
+        offset = np.zeros(doll.num_controls)
+        amplitude = np.zeros(doll.num_controls)
+        for name, (center, swing) in MARCH.items():
+            offset[doll.controls[name]] = center
+            amplitude[doll.controls[name]] = swing
+        if np.any(offset - np.abs(amplitude) < doll.control_low) or np.any(
+            offset + np.abs(amplitude) > doll.control_high
+        ):
+            raise ValueError("RagdollTrack: the reference leaves the joints' target ranges")
+        self.reference_offset = offset
+        self.reference_amplitude = amplitude
+        super().__init__(push_interval=push_interval, config=config, **kwargs)
+
+    def reference(self, time: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """(q_ref (26,) rad, dq_ref (26,) rad/s) at `time` s."""
+        omega = 2.0 * jnp.pi / self.period
+        offset = jnp.asarray(self.reference_offset, self.dtype)
+        amplitude = jnp.asarray(self.reference_amplitude, self.dtype)
+        return offset + amplitude * jnp.sin(omega * time), amplitude * omega * jnp.cos(omega * time)
+
+    def reference_action(self, time: jnp.ndarray) -> jnp.ndarray:
+        """The action whose drive targets are q_ref(time): the open-loop baseline."""
+        return self.action_of_control(self.reference(time)[0])
+
+    def initial_time(self, key: jnp.ndarray) -> jnp.ndarray:
+        return jax.random.uniform(key, (), self.dtype, 0.0, self.period)
+
+    def task_observation(self, state: EnvState) -> jnp.ndarray:
+        time = state.task.time + self.dt  # the end of the coming step
+        target, _ = self.reference(time)
+        phase = 2.0 * jnp.pi * time / self.period
+        return jnp.concatenate([self.observe_body(state), target, jnp.stack([jnp.sin(phase), jnp.cos(phase)])])
+
+    def tracking_error(self, state: EnvState) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """(mean squared position error rad^2, mean squared rate error (rad/s)^2) against the reference."""
+        position, rate = self.joints(state.physics)
+        target, target_rate = self.reference(state.task.time)
+        return jnp.mean((position - target) ** 2), jnp.mean((rate - target_rate) ** 2)
+
+    def task_reward(self, state: EnvState, action: jnp.ndarray, next_state: EnvState) -> dict[str, jnp.ndarray]:
+        position_error, rate_error = self.tracking_error(next_state)
+        return {
+            "pose": self.pose_weight * jnp.exp(-self.pose_scale * position_error),
+            "velocity": self.velocity_weight * jnp.exp(-0.1 * rate_error),
+            "upright": -self.upright_weight * (1.0 - self.up(next_state.physics, self.torso)[2]),
+            "alive": jnp.asarray(self.alive_bonus, self.dtype),
+            "smooth": self.smooth_penalty(state, action),
+        }
+
+    def task_info(self, state: EnvState) -> dict[str, jnp.ndarray]:
+        info = super().task_info(state)
+        info["pose_error"] = math.safe_sqrt(self.tracking_error(state)[0])
+        return info
+
+
+# ---------------------------------------------------------------------------- Gymnasium entry points
+class RagdollStandEnv(DbdEnv):
+    """`gymnasium.make("dbdjax/RagdollStand-v0")`; kwargs go to `RagdollStand`."""
+
+    def __init__(self, render_mode: str | None = None, jit_options: dict | None = None, **kwargs):
+        super().__init__(RagdollStand(**kwargs), render_mode=render_mode, jit_options=jit_options)
+
+
+class RagdollStandVectorEnv(DbdVectorEnv):
+    """`gymnasium.make_vec("dbdjax/RagdollStand-v0", num_envs, vectorization_mode="vector_entry_point")`."""
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        render_mode: str | None = None,
+        max_episode_steps: int | None = RagdollEnv.default_max_episode_steps,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        jit_options: dict | None = None,
+        **kwargs,
+    ):
+        task = RagdollStand(max_episode_steps=max_episode_steps, **kwargs)
+        super().__init__(task, num_envs, autoreset_mode, render_mode, jit_options)
+
+
+class RagdollTrackEnv(DbdEnv):
+    """`gymnasium.make("dbdjax/RagdollTrack-v0")`; kwargs go to `RagdollTrack`."""
+
+    def __init__(self, render_mode: str | None = None, jit_options: dict | None = None, **kwargs):
+        super().__init__(RagdollTrack(**kwargs), render_mode=render_mode, jit_options=jit_options)
+
+
+class RagdollTrackVectorEnv(DbdVectorEnv):
+    """`gymnasium.make_vec("dbdjax/RagdollTrack-v0", num_envs, vectorization_mode="vector_entry_point")`."""
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        render_mode: str | None = None,
+        max_episode_steps: int | None = RagdollEnv.default_max_episode_steps,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        jit_options: dict | None = None,
+        **kwargs,
+    ):
+        task = RagdollTrack(max_episode_steps=max_episode_steps, **kwargs)
+        super().__init__(task, num_envs, autoreset_mode, render_mode, jit_options)

@@ -1,0 +1,138 @@
+"""The tree initial guess (solvers/tree.py): an exact linear solve that moves the converged solution
+only at second order, and the schedule it runs on."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scenes
+
+import dbdjax as dbd
+from dbdjax import integrator, math
+from dbdjax.solvers import dbd as dbd_solver
+from dbdjax.solvers import tree
+
+
+def branching_model(**finalize):
+    """Every case the schedule meets: a world-rooted tree that branches three ways at body 1, a
+    floating tree (bodies 5-6), a joint closing a loop (1-4-3), a slider, a hinge and a fixed
+    joint, regularisation on some joints and a joint whose body_a is the child."""
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    rng = np.random.default_rng(3)
+    for _ in range(8):
+        inertia = rng.uniform(0.02, 0.05, size=3)
+        b.add_body(pos=rng.normal(size=3), mass=rng.uniform(0.5, 2.0), inertia=inertia, quat=rng.normal(size=4))
+    anchor = lambda: rng.normal(size=3)  # noqa: E731
+    b.add_ball_joint(dbd.WORLD, 0, anchor=anchor())
+    b.add_hinge_joint(0, 1, anchor=anchor(), axis=(0, 0, 1), regularization=0.3)
+    b.add_ball_joint(1, 2, anchor=anchor())
+    b.add_fixed_joint(3, 1, anchor=anchor())  # the child on side a
+    b.add_ball_joint(1, 4, anchor=anchor(), regularization=0.05)
+    b.add_ball_joint(4, 3, anchor=anchor())  # closes the loop 1-4-3-1
+    b.add_ball_joint(5, 6, anchor=anchor())  # a floating pair
+    b.add_slider_joint(6, 7, anchor=anchor(), axis=(1, 0, 0))
+    return b.finalize(dt=1 / 60, **finalize)
+
+
+def displaced_predicted_state(model, seed=0):
+    """X* with every joint pulled apart (random displacements and rotations of the bodies)."""
+    rng = np.random.default_rng(seed)
+    state = dbd.init(model)
+    turn = math.quat_exp(jnp.asarray(rng.normal(scale=0.3, size=(8, 3))))
+    quat = math.quat_normalize(math.quat_multiply(turn, state.quat))
+    return dbd.State(state.pos + rng.normal(scale=0.05, size=(8, 3)), quat, state.vel, state.ang_vel)
+
+
+def test_schedule_puts_children_before_parents_and_cuts_loops_and_sliders():
+    model = branching_model()
+    s = model.structure
+    joints, bodies, parents = tree.forest(s)
+    world, num_joints = s.num_bodies, s.num_joints
+    level_of = {int(b): k for k, row in enumerate(bodies) for b in row if b != world}
+    assert sorted(level_of) == list(range(7))  # body 7 hangs on the slider alone: not in any tree
+    tree_joints = sorted(int(j) for j in joints.ravel() if j != num_joints)
+    assert tree_joints == [0, 1, 2, 3, 4, 6]  # 5 closes the loop, 7 is the slider
+    for k, (row_j, row_b, row_p) in enumerate(zip(joints, bodies, parents, strict=True)):
+        for j, child, parent in zip(row_j, row_b, row_p, strict=True):
+            if child == world:
+                continue
+            if parent != world:
+                assert level_of[int(parent)] > k
+            if j != num_joints:
+                assert {int(child), int(parent)} == {int(s.joint_body_a.array[j]), int(s.joint_body_b.array[j])}
+    assert level_of[1] > max(level_of[2], level_of[3], level_of[4])  # body 1 waits for its three children
+
+
+def test_tree_guess_is_the_exact_solution_of_the_linearised_point_constraints(float64):
+    model = branching_model(velocity_dependent_inertia=True)
+    predicted = displaced_predicted_state(model)
+    spin = jnp.asarray(np.random.default_rng(1).normal(size=(8, 3)))
+    predicted = dbd.State(predicted.pos, predicted.quat, predicted.vel, spin)
+    table = dbd_solver.body_table(model, predicted, 1 / 60)
+    dx, dtheta, kappa = tree.initial_guess(model, table)
+
+    # Brute force: assemble J (3 rows per tree joint, vector form DBD (65)) and M~^-1, solve densely.
+    delta, arm_a, arm_b = tree.point_gaps(model, table)
+    s = model.structure
+    tree_joints = [0, 1, 2, 3, 4, 6]
+    n = s.num_bodies
+    jacobian = np.zeros((3 * len(tree_joints), 6 * n))
+    for row, j in enumerate(tree_joints):
+        for body, arm, sign in ((s.joint_body_a.array[j], arm_a[j], 1.0), (s.joint_body_b.array[j], arm_b[j], -1.0)):
+            if body < n:
+                jacobian[3 * row : 3 * row + 3, 6 * body : 6 * body + 3] = sign * np.eye(3)
+                jacobian[3 * row : 3 * row + 3, 6 * body + 3 : 6 * body + 6] = -sign * np.asarray(math.skew(arm))
+    inverse_mass = np.zeros((6 * n, 6 * n))
+    for body in range(n):
+        inverse_mass[6 * body : 6 * body + 3, 6 * body : 6 * body + 3] = np.eye(3) * float(table.inv_mass[body])
+        inverse_mass[6 * body + 3 : 6 * body + 6, 6 * body + 3 : 6 * body + 6] = np.asarray(table.inv_inertia[body])
+    alpha = np.repeat(np.asarray(model.joints.regularization)[tree_joints], 3)
+    system = jacobian @ inverse_mass @ jacobian.T + np.diag(alpha)
+    expected_kappa = np.linalg.solve(system, -np.asarray(delta)[tree_joints].ravel())
+    expected = (inverse_mass @ jacobian.T @ expected_kappa).reshape(n, 6)
+
+    assert np.abs(np.asarray(delta)[tree_joints]).max() > 0.01  # the joints really are apart
+    np.testing.assert_allclose(np.asarray(kappa)[tree_joints].ravel(), expected_kappa, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(kappa)[[5, 7]], 0.0)  # loop and slider: left to the iterations
+    np.testing.assert_allclose(np.asarray(dx)[:n], expected[:, :3], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(dtheta)[:n], expected[:, 3:], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(dx)[n], 0.0)
+
+
+def ball_tree(initial_guess):
+    """Five well-proportioned bodies on ball joints, branching at body 1."""
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    for i in range(5):
+        b.add_body(pos=(0.2 * (i + 1), 0.05 * i, 0), mass=1.0 + 0.2 * i, inertia=(0.02, 0.03, 0.025))
+    for a, c, anchor in ((dbd.WORLD, 0, (0.1, 0, 0)), (0, 1, (0.3, 0, 0)), (1, 2, (0.5, 0.05, 0)),
+                         (1, 3, (0.7, 0.1, 0.05)), (3, 4, (0.9, 0.15, 0))):  # fmt: skip
+        b.add_ball_joint(a, c, anchor=anchor)
+    return b.finalize(dt=1 / 60, iterations=300, initial_guess=initial_guess)
+
+
+def test_tree_guess_moves_the_converged_solution_only_at_second_order(float64):
+    # The constraints' solution set is a manifold, so where the non-linear iterations end depends on
+    # where they start; a correct linear guess shifts it only at second order in the correction.
+    differences = []
+    for scale in (0.02, 0.01):
+        solutions = []
+        for guess in ("zero", "tree"):
+            model = ball_tree(guess)
+            rng = np.random.default_rng(0)
+            start = dbd.init(model)
+            turn = math.quat_exp(jnp.asarray(rng.normal(scale=scale, size=(5, 3))))
+            quat = math.quat_normalize(math.quat_multiply(turn, start.quat))
+            predicted = dbd.State(start.pos + rng.normal(scale=scale, size=(5, 3)), quat, start.vel, start.ang_vel)
+            dx, dtheta, _ = dbd_solver.solve(model, predicted, None, (), 1 / 60)
+            after = integrator.apply(predicted, dx, dtheta, 1 / 60)
+            assert float(jnp.max(dbd.diagnostics.joint_gaps(model, after))) < 1e-9
+            solutions.append(np.concatenate([np.asarray(dx), np.asarray(dtheta)]))
+        assert np.abs(solutions[0]).max() > scale / 2  # a real correction
+        differences.append(np.abs(solutions[1] - solutions[0]).max())
+    assert differences[1] < 0.3 * differences[0]  # halving the correction quarters the shift (linear: halves)
+
+
+def test_zero_guess_is_still_available_and_unknown_guesses_are_refused():
+    model = scenes.chain(3, dt=1 / 60, initial_guess="zero")
+    assert model.options.initial_guess == "zero"
+    with pytest.raises(ValueError, match="finalize: unknown initial_guess 'warm'"):
+        scenes.chain(3, dt=1 / 60, initial_guess="warm")
