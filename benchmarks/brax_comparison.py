@@ -272,11 +272,6 @@ def main() -> None:
     seconds = 5.0 if args.full else 1.5
     horizons = [100, 1000] if args.full else [100]
 
-    try:
-        from rich.progress import Progress
-    except ImportError:  # progress lines only
-        Progress = None
-
     results: dict[str, Any] = {
         "settings": {
             "dt": "each model's MJCF timestep, every engine",
@@ -300,47 +295,50 @@ def main() -> None:
     if args.note:
         results["note"] += " " + args.note
     started = time.perf_counter()
-    for model_name in args.models:
-        xml = ASSETS / f"{model_name}.xml"
-        engines, skipped = make_engines(xml, args.engines)
-        tasks = [(e, "compile", None) for e in engines] + [(e, "batch", b) for e in engines for b in batches]
-        if model_name == "humanoid":
-            tasks += [(e, "accuracy", None) for e in engines]
-            tasks += [(e, "grad", (h, r)) for e in engines for h in horizons for r in (False, True)]
-        per_engine: dict[str, dict] = {e.name: {"dt": e.dt, "throughput": [], "grad": []} for e in engines}
-        progress = Progress() if Progress else None
-        if progress:
-            progress.start()
-            bar = progress.add_task(f"{model_name}", total=len(tasks))
-        for engine, kind, argument in tasks:
-            label = f"{model_name} {engine.name} {kind} {argument if argument is not None else ''}"
-            try:
-                if kind == "compile":
-                    per_engine[engine.name]["compile"] = compile_times(engine)
-                elif kind == "batch":
-                    per_engine[engine.name]["throughput"].append(throughput(engine, argument, seconds))
-                elif kind == "accuracy":
-                    per_engine[engine.name]["dropped"] = dropped_accuracy(engine)
-                else:
-                    per_engine[engine.name]["grad"].append(gradient_cost(engine, *argument))
-            except Exception as error:  # noqa: BLE001 - one engine failing must not lose the others' numbers
-                per_engine[engine.name].setdefault("errors", []).append(f"{kind} {argument}: {error!r:.300}")
-            if progress:
-                progress.update(bar, advance=1, description=label)
-            else:
-                print(label, flush=True)
-        if progress:
-            progress.stop()
-        results["models"][model_name] = per_engine
-        if skipped:
-            results["models"][model_name]["skipped"] = skipped
-        print_table(model_name, per_engine)
-
-    results["machine"]["load_average_1_5_15_min_at_end"] = [round(x, 2) for x in os.getloadavg()]
-    results["machine"]["wall_s"] = round(time.perf_counter() - started, 1)
     RESULTS.mkdir(exist_ok=True)
     out = RESULTS / f"brax_comparison_{jax.devices()[0].platform}.json"
-    out.write_text(json.dumps(results, indent=2) + "\n")
+    # Every model's engines first, then the tasks in order of what matters most (throughput, the
+    # dropped model's gaps, compile times, gradient cost), the JSON rewritten after each task so
+    # that a run cut short keeps what it measured (`unfinished` lists the rest).
+    per_model: dict[str, tuple[list[Engine], dict[str, dict]]] = {}
+    for model_name in args.models:
+        engines, skipped = make_engines(ASSETS / f"{model_name}.xml", args.engines)
+        per_engine: dict[str, dict] = {e.name: {"dt": e.dt, "throughput": [], "grad": []} for e in engines}
+        if skipped:
+            per_engine["skipped"] = skipped
+        results["models"][model_name] = per_engine
+        per_model[model_name] = (engines, per_engine)
+    tasks = [(m, e, "batch", b) for b in batches for m, (es, _) in per_model.items() for e in es]
+    tasks += [(m, e, "accuracy", None) for m, (es, _) in per_model.items() for e in es]
+    tasks += [(m, e, "compile", None) for m, (es, _) in per_model.items() for e in es]
+    tasks += [(m, e, "grad", (h, r)) for h in horizons for r in (False, True) for m, (es, _) in per_model.items()
+              for e in es if m == "humanoid"]  # fmt: skip
+    labels = [
+        f"{m} {e.name} {kind} {argument if argument is not None else ''}".strip() for m, e, kind, argument in tasks
+    ]
+    for index, (model_name, engine, kind, argument) in enumerate(tasks):
+        per_engine = per_model[model_name][1]
+        task_started = time.perf_counter()
+        try:
+            if kind == "compile":
+                per_engine[engine.name]["compile"] = compile_times(engine)
+            elif kind == "batch":
+                per_engine[engine.name]["throughput"].append(throughput(engine, argument, seconds))
+            elif kind == "accuracy":
+                per_engine[engine.name]["dropped"] = dropped_accuracy(engine)
+            else:
+                per_engine[engine.name]["grad"].append(gradient_cost(engine, *argument))
+        except Exception as error:  # noqa: BLE001 - one engine failing must not lose the others' numbers
+            per_engine[engine.name].setdefault("errors", []).append(f"{kind} {argument}: {error!r:.300}")
+        print(f"[{index + 1}/{len(tasks)}] {labels[index]}: {time.perf_counter() - task_started:.0f} s "
+              f"(total {time.perf_counter() - started:.0f} s)", flush=True)  # fmt: skip
+        results["unfinished"] = labels[index + 1 :]
+        results["machine"]["load_average_1_5_15_min_at_end"] = [round(x, 2) for x in os.getloadavg()]
+        results["machine"]["wall_s"] = round(time.perf_counter() - started, 1)
+        out.write_text(json.dumps(results, indent=2) + "\n")
+
+    for model_name, (_, per_engine) in per_model.items():
+        print_table(model_name, per_engine)
     print(f"wrote {out}")
     plot(out)
 
