@@ -21,6 +21,9 @@ joints   hinge -> hinge, slide -> slider, ball -> ball, free -> nothing. Limits 
              range as a per-hinge limit, exact. The gimbal's middle angle lives in [-pi/2, pi/2]
              (the decomposition is singular at +-pi/2, where axes 1 and 3 align): a middle range
              wider than that is clipped to it, an approximation.
+           3 perpendicular hinges that each have a position actuator (dbdjax/assets/ragdoll.xml's
+             way of writing a ball joint with a ball drive) -> one ball joint with that drive
+             (`_ball_drive`), as below: an approximation of MuJoCo's successive hinges.
            2 or 3 hinges through one point at other angles -> one ball joint: the twist axis is
              the last hinge's axis with that hinge's range as twist limits, and the cone limit
              is the largest |bound| of the other hinges (an approximation: a 2-hinge body gains
@@ -332,7 +335,14 @@ def _add_body_joints(mujoco, m, d, builder: ModelBuilder, i: int, body_index, bo
     slides = [j for j, t in zip(joints, types, strict=True) if t == J.mjJNT_SLIDE]
     units = axes / np.linalg.norm(axes, axis=1, keepdims=True)
     perpendicular = all(abs(units[i] @ units[k]) < 1e-6 for i in range(len(joints)) for k in range(i + 1, len(joints)))
-    if len(hinges) == len(joints) and len(joints) <= 3 and perpendicular:
+    # Three hinges each driven by a position actuator: the ball-drive convention of
+    # dbdjax/assets/ragdoll.xml (a ball joint with a rotation-vector target), kept as a ball.
+    position_driven = len(joints) == 3 and all(
+        any(int(m.actuator_trnid[a, 0]) == j and m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+            and _is_position(mujoco, m, a) for a in range(m.nu))
+        for j in joints
+    )  # fmt: skip
+    if len(hinges) == len(joints) and len(joints) <= 3 and perpendicular and not position_driven:
         # Perpendicular hinges through one point -> a universal (2) or gimbal (3) joint, exact.
         bounds = [limits(j, clip=True) for j in joints]
         if len(joints) == 3 and bounds[1] is not None:  # the gimbal's middle angle lives in [-pi/2, pi/2]
