@@ -129,15 +129,17 @@ def brax_engine(xml: Path, backend: str) -> Engine:
     )
 
 
-def make_engines(xml: Path, names: list[str]) -> list[Engine]:
-    engines = []
+def make_engines(xml: Path, names: list[str]) -> tuple[list[Engine], dict[str, str]]:
+    """The engines that load `xml`, and for each one that refuses it, the reason."""
+    engines, skipped = [], {}
     for name in names:
         family, variant = name.split("-", 1)
         try:
             engines.append(dbdjax_engine(xml, variant) if family == "dbdjax" else brax_engine(xml, variant))
         except (TypeError, ValueError, ImportError) as error:
-            print(f"  {name} on {xml.name}: skipped ({type(error).__name__}: {error})", flush=True)
-    return engines
+            skipped[name] = f"{type(error).__name__}: {error}"
+            print(f"  {name} on {xml.name}: skipped ({skipped[name]})", flush=True)
+    return engines, skipped
 
 
 # ---------------------------------------------------------------------------------------- measures
@@ -167,7 +169,12 @@ def throughput(engine: Engine, batch: int, seconds: float, chunk: int = 10) -> d
     controls = random_controls(engine, (chunk, batch))
     batched = jax.vmap(engine.step)
     run = jax.jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0])
-    compile_s = _seconds(run, state)
+    # Two untimed calls: the first compiles, and where an engine's state comes back with other
+    # types than it went in (weak types), the second compiles again; timing starts after both.
+    started = time.perf_counter()
+    state = jax.block_until_ready(run(state))
+    state = jax.block_until_ready(run(state))
+    compile_s = time.perf_counter() - started
     calls, started = 0, time.perf_counter()
     while time.perf_counter() - started < seconds or calls < 2:
         state = run(state)
@@ -178,7 +185,7 @@ def throughput(engine: Engine, batch: int, seconds: float, chunk: int = 10) -> d
         "batch": batch,
         "steps_per_s": round(batch * calls * chunk / elapsed, 1),
         "us_per_batched_step": round(elapsed / (calls * chunk) * 1e6, 1),
-        "first_call_s": round(compile_s, 2),
+        "first_two_calls_s": round(compile_s, 2),
     }
 
 
@@ -260,15 +267,15 @@ def main() -> None:
         nargs="+",
         default=["dbdjax-dbd", "dbdjax-impulse", "brax-positional", "brax-generalized", "brax-mjx"],
     )
+    parser.add_argument("--note", default="", help="appended to the JSON's note (e.g. what else loaded the machine)")
+    parser.add_argument("--plot", type=Path, help="only redraw the plot of an existing results JSON")
     args = parser.parse_args()
+    if args.plot:
+        plot(args.plot)
+        return
     batches = [1, 16, 256, 4096] if args.full else [1, 16]
     seconds = 5.0 if args.full else 1.5
     horizons = [100, 1000] if args.full else [100]
-
-    try:
-        from rich.progress import Progress
-    except ImportError:  # progress lines only
-        Progress = None
 
     results: dict[str, Any] = {
         "settings": {
@@ -284,46 +291,93 @@ def main() -> None:
             "jax": jax.__version__,
             "device": str(jax.devices()[0]),
             "device_kind": jax.devices()[0].device_kind,
+            "load_average_1_5_15_min_at_start": [round(x, 2) for x in os.getloadavg()],
         },
+        "note": "Every engine was measured in this one run, one after another, on the same machine and load: the "
+        "ratios between engines are what this file reports; absolute steps/s depend on what else the machine ran.",
         "models": {},
     }
-    for model_name in args.models:
-        xml = ASSETS / f"{model_name}.xml"
-        engines = make_engines(xml, args.engines)
-        tasks = [(e, "compile", None) for e in engines] + [(e, "batch", b) for e in engines for b in batches]
-        if model_name == "humanoid":
-            tasks += [(e, "accuracy", None) for e in engines]
-            tasks += [(e, "grad", (h, r)) for e in engines for h in horizons for r in (False, True)]
-        per_engine: dict[str, dict] = {e.name: {"dt": e.dt, "throughput": [], "grad": []} for e in engines}
-        progress = Progress() if Progress else None
-        if progress:
-            progress.start()
-            bar = progress.add_task(f"{model_name}", total=len(tasks))
-        for engine, kind, argument in tasks:
-            label = f"{model_name} {engine.name} {kind} {argument if argument is not None else ''}"
-            try:
-                if kind == "compile":
-                    per_engine[engine.name]["compile"] = compile_times(engine)
-                elif kind == "batch":
-                    per_engine[engine.name]["throughput"].append(throughput(engine, argument, seconds))
-                elif kind == "accuracy":
-                    per_engine[engine.name]["dropped"] = dropped_accuracy(engine)
-                else:
-                    per_engine[engine.name]["grad"].append(gradient_cost(engine, *argument))
-            except Exception as error:  # noqa: BLE001 - one engine failing must not lose the others' numbers
-                per_engine[engine.name].setdefault("errors", []).append(f"{kind} {argument}: {error!r:.300}")
-            if progress:
-                progress.update(bar, advance=1, description=label)
-            else:
-                print(label, flush=True)
-        if progress:
-            progress.stop()
-        results["models"][model_name] = per_engine
-        print_table(model_name, per_engine)
-
+    if args.note:
+        results["note"] += " " + args.note
+    started = time.perf_counter()
     RESULTS.mkdir(exist_ok=True)
     out = RESULTS / f"brax_comparison_{jax.devices()[0].platform}.json"
-    out.write_text(json.dumps(results, indent=2) + "\n")
+    # Every model's engines first, then the tasks in order of what matters most (throughput, the
+    # dropped model's gaps, compile times, gradient cost), the JSON rewritten after each task so
+    # that a run cut short keeps what it measured (`unfinished` lists the rest).
+    per_model: dict[str, tuple[list[Engine], dict[str, dict]]] = {}
+    for model_name in args.models:
+        engines, skipped = make_engines(ASSETS / f"{model_name}.xml", args.engines)
+        per_engine: dict[str, dict] = {e.name: {"dt": e.dt, "throughput": [], "grad": []} for e in engines}
+        if skipped:
+            per_engine["skipped"] = skipped
+        results["models"][model_name] = per_engine
+        per_model[model_name] = (engines, per_engine)
+    tasks = [(m, e, "batch", b) for b in batches for m, (es, _) in per_model.items() for e in es]
+    tasks += [(m, e, "accuracy", None) for m, (es, _) in per_model.items() for e in es]
+    tasks += [(m, e, "compile", None) for m, (es, _) in per_model.items() for e in es]
+    tasks += [(m, e, "grad", (h, r)) for h in horizons for r in (False, True) for m, (es, _) in per_model.items()
+              for e in es if m == "humanoid"]  # fmt: skip
+    labels = [
+        f"{m} {e.name} {kind} {argument if argument is not None else ''}".strip() for m, e, kind, argument in tasks
+    ]
+    for index, (model_name, engine, kind, argument) in enumerate(tasks):
+        per_engine = per_model[model_name][1]
+        task_started = time.perf_counter()
+        try:
+            if kind == "compile":
+                per_engine[engine.name]["compile"] = compile_times(engine)
+            elif kind == "batch":
+                per_engine[engine.name]["throughput"].append(throughput(engine, argument, seconds))
+            elif kind == "accuracy":
+                per_engine[engine.name]["dropped"] = dropped_accuracy(engine)
+            else:
+                per_engine[engine.name]["grad"].append(gradient_cost(engine, *argument))
+        except Exception as error:  # noqa: BLE001 - one engine failing must not lose the others' numbers
+            per_engine[engine.name].setdefault("errors", []).append(f"{kind} {argument}: {error!r:.300}")
+        print(f"[{index + 1}/{len(tasks)}] {labels[index]}: {time.perf_counter() - task_started:.0f} s "
+              f"(total {time.perf_counter() - started:.0f} s)", flush=True)  # fmt: skip
+        results["unfinished"] = labels[index + 1 :]
+        results["machine"]["load_average_1_5_15_min_at_end"] = [round(x, 2) for x in os.getloadavg()]
+        results["machine"]["wall_s"] = round(time.perf_counter() - started, 1)
+        out.write_text(json.dumps(results, indent=2) + "\n")
+
+    for model_name, (_, per_engine) in per_model.items():
+        print_table(model_name, per_engine)
+    print(f"wrote {out}")
+    plot(out)
+
+
+def plot(path: Path) -> None:
+    """Steps/s against batch per engine, one panel per model, next to the JSON (<stem>.png)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no plot")
+        return
+    results = json.loads(path.read_text())
+    models = results["models"]
+    figure, axes = plt.subplots(1, len(models), figsize=(5.5 * len(models), 4.2), squeeze=False)
+    for ax, (model_name, per_engine) in zip(axes[0], models.items(), strict=True):
+        for name, data in per_engine.items():
+            if name == "skipped" or not data.get("throughput"):
+                continue
+            batches = [t["batch"] for t in data["throughput"]]
+            rates = [t["steps_per_s"] for t in data["throughput"]]
+            ax.plot(batches, rates, marker="o", label=name)
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xlabel("batch")
+        ax.set_ylabel("physics steps / s")
+        ax.set_title(f"{model_name} ({results['machine']['device_kind']})")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    figure.tight_layout()
+    out = path.with_suffix(".png")
+    figure.savefig(out, dpi=110)
     print(f"wrote {out}")
 
 
@@ -336,6 +390,10 @@ def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
     print(header)
     print("-" * len(header))
     for name, data in per_engine.items():
+        if name == "skipped":
+            for engine, reason in data.items():
+                print(f"{engine:<18}skipped: {reason:.200}")
+            continue
         grad_compile = data.get("compile", {}).get("grad_rollout100_s")
         reference_compile = reference.get("compile", {}).get("grad_rollout100_s")
         for t in data["throughput"]:

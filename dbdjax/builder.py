@@ -21,10 +21,12 @@ from dbdjax.collision import BOX, CAPSULE, PLANE, SPHERE, num_points
 from dbdjax.model import (
     BALL,
     FIXED,
+    GIMBAL,
     HINGE,
     JOINT_KIND_NAMES,
     PLANAR,
     SLIDER,
+    UNIVERSAL,
     WORLD,
     Bodies,
     ContactGroup,
@@ -124,7 +126,20 @@ class _Joint:
     motor_max_force: float = 0.0
     motor_control: int | None = None
     passive_drive: bool = False  # add_joint_spring: a drive toward the build pose, no control
+    axis_b: np.ndarray | None = None  # world axis whose b-frame copy is local_axis_b (default: axis)
+    axes: np.ndarray | None = None  # universal, gimbal: (3, 3) world rows m1, m2, m3 at build time
+    axis_lower: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, -math.pi))
+    axis_upper: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, math.pi))
+    axis_limited: tuple[bool, bool, bool] = (False, False, False)
+    axis_stiffness: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    axis_damping: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    armature: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # per degree of freedom
     baumgarte: float | None = None  # beta of SI (17) for the impulse solver; None: finalize's
+
+    @property
+    def num_axes(self) -> int:
+        """Hinges of a universal (2) or gimbal (3) joint; 0 for the other kinds."""
+        return {UNIVERSAL: 2, GIMBAL: 3}.get(self.kind, 0)
 
 
 @dataclasses.dataclass
@@ -136,6 +151,7 @@ class _Torque:
     axis: np.ndarray
     linear: bool
     control: int
+    dof: int = -1  # the hinge of a universal or gimbal joint (-1: the joint's own axis)
 
 
 @dataclasses.dataclass
@@ -491,6 +507,87 @@ class ModelBuilder:
             False, math.pi, False, relaxation, regularization, baumgarte,
         )  # fmt: skip
 
+    def add_universal_joint(
+        self,
+        body_a: int,
+        body_b: int,
+        anchor: Sequence[float],
+        axes: Sequence[Sequence[float]],
+        limits: Sequence[tuple[float, float] | None] | None = None,
+        relaxation: float = 1.0,
+        regularization: float = 0.0,
+        name: str | None = None,
+    ) -> int:
+        """Universal joint (2 degrees of freedom): b turns about axes[0], fixed in a, then about
+        axes[1], fixed in b: the relative rotation R(axis1, t1) R(axis2, t2), MuJoCo's two hinges
+        on one body. axes: two perpendicular world directions at build time. limits: None, or one
+        (lower, upper) in [-pi, pi] rad (or None) per hinge, of the angles `math.euler_angles`
+        measures from the build pose. Rows: the point block, one lock row keeping the angle
+        between axis 1 (on a) and axis 2 (on b) at 90 degrees (DBD 6, (73)-(80), with that
+        offset), and one-sided angle rows for the limits (SI 2.4.5, clamped as DBD 6.1)."""
+        return self._add_euler_joint(UNIVERSAL, body_a, body_b, anchor, axes, limits, relaxation, regularization,
+                                     name)  # fmt: skip
+
+    def add_gimbal_joint(
+        self,
+        body_a: int,
+        body_b: int,
+        anchor: Sequence[float],
+        axes: Sequence[Sequence[float]],
+        limits: Sequence[tuple[float, float] | None] | None = None,
+        relaxation: float = 1.0,
+        regularization: float = 0.0,
+        name: str | None = None,
+    ) -> int:
+        """Three successive hinges through `anchor` (3 rotational degrees of freedom, MuJoCo's three
+        hinges on one body): the relative rotation R(axis1, t1) R(axis2, t2) R(axis3, t3), axis 1
+        fixed in a, axis 3 in b. axes: three mutually perpendicular world directions at build time
+        (either handedness). limits: None, or per hinge (lower, upper) rad or None; the outer
+        hinges' in [-pi, pi], the middle one's in [-pi/2, pi/2] (the decomposition is singular at
+        t2 = +-pi/2, where axes 1 and 3 align). Rows: the point block and the limit rows."""
+        return self._add_euler_joint(GIMBAL, body_a, body_b, anchor, axes, limits, relaxation, regularization, name)
+
+    def _add_euler_joint(self, kind, body_a, body_b, anchor, axes, limits, relaxation, regularization, name) -> int:
+        count = 2 if kind == UNIVERSAL else 3
+        label = self._joint_label(JOINT_KIND_NAMES[kind], name)
+        anchor = _vector(anchor, 3, f"{label}: anchor")
+        self._check_bodies(label, body_a, body_b)
+        if len(axes) != count:
+            raise ValueError(f"{label}: needs {count} axes, got {len(axes)}")
+        units = [_unit(axis, f"{label}: axis {k + 1}") for k, axis in enumerate(axes)]
+        for i in range(count):
+            for k in range(i + 1, count):
+                if abs(units[i] @ units[k]) > 1e-6:
+                    raise ValueError(f"{label}: axes {i + 1} and {k + 1} must be perpendicular, their cosine is "
+                                     f"{units[i] @ units[k]:.3g}")  # fmt: skip
+        # Gram-Schmidt: exactly orthonormal, so the decomposition's handedness is exactly +-1
+        units[1] = units[1] - (units[1] @ units[0]) * units[0]
+        units[1] /= np.linalg.norm(units[1])
+        if count == 2:
+            units.append(np.cross(units[0], units[1]))
+        else:
+            units[2] = np.sign(units[2] @ np.cross(units[0], units[1])) * np.cross(units[0], units[1])
+        if limits is not None and len(limits) != count:
+            raise ValueError(f"{label}: limits must give one (lower, upper) or None per axis, got {limits!r}")
+        lower, upper, limited = np.full(3, -math.pi), np.full(3, math.pi), [False, False, False]
+        for k, pair in enumerate(limits or [None] * count):
+            if pair is None:
+                continue
+            lower[k], upper[k] = self._limits(f"{label} axis {k + 1}", pair, angular=True)
+            if kind == GIMBAL and k == 1 and (lower[k] < -math.pi / 2 or upper[k] > math.pi / 2):
+                raise ValueError(f"{label}: the middle axis' limits must lie in [-pi/2, pi/2], got "
+                                 f"({lower[k]}, {upper[k]})")  # fmt: skip
+            limited[k] = True
+        index = self._add_joint(
+            label, name, kind, body_a, body_b, anchor, units[0], 0.0, 0.0, False, math.pi, False,
+            relaxation, regularization,
+        )  # fmt: skip
+        record = self._joints[index]
+        record.axes = np.stack(units)
+        record.axis_b = units[1] if kind == UNIVERSAL else units[2]
+        record.axis_lower, record.axis_upper, record.axis_limited = lower, upper, tuple(limited)
+        return index
+
     def _joint_label(self, kind: str, name: str | None) -> str:
         index = len(self._joints)
         return f"{kind} joint {index}" + (f" ({name!r})" if name else "")
@@ -562,40 +659,92 @@ class ModelBuilder:
 
         Hinge joints: the target is 1 control entry, the angle (rad) of b about the axle from the
         build pose. Ball joints: 3 entries, the target rotation of b relative to a from the build
-        pose as a rotation vector (rad) in a's frame. stiffness: N m/rad. damping: N m s/rad.
-        max_torque: N m, None for unlimited (the clamp of (114)). Returns the drive's slice of
-        the control vector (controls are numbered in the order drives and motors are added).
+        pose as a rotation vector (rad) in a's frame. Universal / gimbal joints: 2 / 3 entries,
+        the target angle of each hinge (`math.euler_angles`), one spring row per hinge acting on
+        that angle alone; stiffness and damping may then be given per hinge. stiffness: N m/rad.
+        damping: N m s/rad. max_torque: N m, None for unlimited (the clamp of (114); per hinge).
+        Returns the drive's slice of the control vector (controls are numbered in the order
+        drives and motors are added).
         """
         label, record = self._actuated_joint("add_drive", joint)
-        if record.kind not in (HINGE, BALL):
-            raise ValueError(f"add_drive: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; drives act on hinge "
-                             "and ball joints (use add_motor for a slider)")  # fmt: skip
+        if record.kind not in (HINGE, BALL, UNIVERSAL, GIMBAL):
+            raise ValueError(f"add_drive: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; drives act on hinge, "
+                             "ball, universal and gimbal joints (use add_motor for a slider)")  # fmt: skip
         if record.drive_control or record.passive_drive:
             raise ValueError(f"add_drive: {label} already has a drive")
-        record.drive_stiffness = self._non_negative(stiffness, f"add_drive on {label}: stiffness")
-        record.drive_damping = self._non_negative(damping, f"add_drive on {label}: damping")
+        self._set_drive(record, f"add_drive on {label}", stiffness, damping)
         if max_torque is not None:
             record.drive_max_torque = _scalar(max_torque, f"add_drive on {label}: max_torque")
             if record.drive_max_torque <= 0.0:
                 raise ValueError(f"add_drive on {label}: max_torque must be positive, got {max_torque}")
-        size = 1 if record.kind == HINGE else 3
+        size = {HINGE: 1, BALL: 3}.get(record.kind, record.num_axes)
         controls = self._new_controls(f"drive on {name or record.name}", size)
         record.drive_control = tuple(range(controls.start, controls.stop))
         return controls
 
-    def add_joint_spring(self, joint: int, stiffness: float, damping: float = 0.0) -> None:
-        """A passive spring-damper on a hinge or ball joint toward its build pose (MJCF joint
-        stiffness and damping): the drive of DBD 9 with a fixed zero target and no control entry.
-        stiffness: N m/rad, damping: N m s/rad (ball: the same about every axis)."""
+    def add_joint_spring(
+        self, joint: int, stiffness: float | Sequence[float], damping: float | Sequence[float] = 0.0
+    ) -> None:
+        """A passive spring-damper on a hinge, ball, universal or gimbal joint toward its build pose
+        (MJCF joint stiffness and damping): the drive of DBD 9 with a fixed zero target and no
+        control entry. stiffness: N m/rad, damping: N m s/rad (ball: the same about every axis;
+        universal, gimbal: a number for every hinge or one per hinge, each acting on its own
+        hinge angle as MuJoCo's per-dof stiffness and damping do)."""
         label, record = self._actuated_joint("add_joint_spring", joint)
-        if record.kind not in (HINGE, BALL):
+        if record.kind not in (HINGE, BALL, UNIVERSAL, GIMBAL):
             raise ValueError(f"add_joint_spring: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; joint springs "
-                             "act on hinge and ball joints")  # fmt: skip
+                             "act on hinge, ball, universal and gimbal joints")  # fmt: skip
         if record.drive_control or record.passive_drive:
             raise ValueError(f"add_joint_spring: {label} already has a drive")
-        record.drive_stiffness = self._non_negative(stiffness, f"add_joint_spring on {label}: stiffness")
-        record.drive_damping = self._non_negative(damping, f"add_joint_spring on {label}: damping")
+        self._set_drive(record, f"add_joint_spring on {label}", stiffness, damping)
         record.passive_drive = True
+
+    def _set_drive(self, record: _Joint, what: str, stiffness, damping) -> None:
+        """Stiffness and damping of a drive: scalars, or per hinge for universal and gimbal joints."""
+        if not record.num_axes:
+            record.drive_stiffness = self._non_negative(stiffness, f"{what}: stiffness")
+            record.drive_damping = self._non_negative(damping, f"{what}: damping")
+            return
+        for field, value in (("stiffness", stiffness), ("damping", damping)):
+            values = np.broadcast_to(np.asarray(value, dtype=np.float64), (record.num_axes,)) if np.ndim(value) == 0 \
+                else np.asarray(value, dtype=np.float64)  # fmt: skip
+            if values.shape != (record.num_axes,):
+                raise ValueError(
+                    f"{what}: {field} must be a number or one per hinge ({record.num_axes}), got {value!r}"
+                )
+            per_axis = np.zeros(3)
+            per_axis[: record.num_axes] = [self._non_negative(v, f"{what}: {field}") for v in values]
+            setattr(record, f"axis_{field}", per_axis)
+
+    def add_armature(self, joint: int, armature: float | Sequence[float]) -> None:
+        """Rotor inertia on a joint's degrees of freedom (MJCF's armature): kg m^2 on a hinge, planar
+        (its rotation), ball (about every axis), universal or gimbal joint (one number, or one per
+        hinge); kg along a slider.
+
+        MuJoCo adds armature to the diagonal of the joint-space mass matrix: kinetic energy
+        1/2 armature qdot^2 in the joint's own coordinate q (an angle of b relative to a, or the
+        slider's travel). Here it is that same energy in the step's variational form (DBD 3-4):
+        1/2 armature (q(X) - q(X*))^2 / h^2, X* the bodies' inertial prediction, is one implicit
+        spring row of the joint (the spring rule of DBD 8.1 with k h^2 = armature) per degree of
+        freedom, toward where the rotor's own inertia carries it. It holds whatever the bodies
+        do (a rotor on a joint between two free bodies spins up both bodies' relative motion,
+        not one body's), unlike adding armature a a^T to the child's inertia, which is right only
+        while the parent does not turn. A torque actuator (`add_torque`) on a degree of freedom
+        with armature acts through that row (it accelerates bodies and rotor together, as in
+        MuJoCo); on a ball joint with armature, torque actuators are refused at finalize.
+        """
+        label, record = self._actuated_joint("add_armature", joint)
+        if record.kind == FIXED:
+            raise ValueError(f"add_armature: {label} is a fixed joint; it has no degree of freedom")
+        count = record.num_axes or 1
+        values = np.atleast_1d(np.asarray(armature, dtype=np.float64))
+        if values.size == 1:
+            values = np.repeat(values, count)
+        if values.shape != (count,):
+            raise ValueError(f"add_armature: {label}: armature must be a number or one per hinge ({count}), "
+                             f"got {armature!r}")  # fmt: skip
+        record.armature = np.zeros(3)
+        record.armature[:count] = [self._non_negative(v, f"add_armature on {label}: armature") for v in values]
 
     def add_motor(self, joint: int, max_force: float, name: str | None = None) -> slice:
         """A motor driving a joint at a control target speed with a force limit (SI 2.3.6, 2.4.6).
@@ -617,22 +766,36 @@ class ModelBuilder:
         return controls
 
     def add_torque(
-        self, joint: int, gear: float = 1.0, axis: Sequence[float] | None = None, name: str | None = None
-    ) -> slice:
+        self, joint: int, gear: float = 1.0, axis: Sequence[float] | None = None, name: str | None = None,
+        dof: int | None = None,
+    ) -> slice:  # fmt: skip
         """A torque actuator (MJCF <motor>): gear * control as an external torque on the joint.
 
         Hinge: torque gear * u (N m) about the axle on b and the opposite on a. Slider: force
         gear * u (N) along the axis on b, and the opposite on a at the same point. Ball: torque
         about `axis` (world, at build time; required), which turns with both bodies (the
-        normalised sum of the axis carried by a and by b). The torque is held constant over each
-        substep and applied in the prediction (as MuJoCo's actuator force, semi-implicit Euler).
-        Returns the actuator's slice (1 entry) of the control vector.
+        normalised sum of the axis carried by a and by b). Universal, gimbal: `dof` (0, 1 or 2)
+        names the hinge, and gear * u is the generalised force on that hinge's angle alone, as
+        MuJoCo's motor on that hinge: the torque along the dual direction g_dof of
+        `math.euler_angles` (the hinge's own axis while the other axes stay perpendicular to it).
+        The torque is held constant over each substep and applied in the prediction (as MuJoCo's
+        actuator force, semi-implicit Euler). Returns the actuator's slice (1 entry) of the
+        control vector.
         """
         label, record = self._actuated_joint("add_torque", joint)
-        if record.kind not in (HINGE, SLIDER, BALL):
+        if record.kind not in (HINGE, SLIDER, BALL, UNIVERSAL, GIMBAL):
             raise ValueError(f"add_torque: {label} is a {JOINT_KIND_NAMES[record.kind]} joint; torque actuators act "
-                             "on hinge, slider and ball joints")  # fmt: skip
+                             "on hinge, slider, ball, universal and gimbal joints")  # fmt: skip
         gear = _scalar(gear, f"add_torque on {label}: gear")
+        if record.num_axes:
+            if axis is not None or not isinstance(dof, (int, np.integer)) or not 0 <= dof < record.num_axes:
+                raise ValueError(f"add_torque: {label} has {record.num_axes} hinges; give dof = 0 .. "
+                                 f"{record.num_axes - 1} (and no axis), got dof={dof!r}")  # fmt: skip
+            controls = self._new_controls(f"torque on {name or record.name}", 1)
+            self._torques.append(_Torque(int(joint), gear, record.axes[dof], False, controls.start, int(dof)))
+            return controls
+        if dof is not None:
+            raise ValueError(f"add_torque: {label} has no hinges to pick with dof; leave it out")
         if record.kind == BALL:
             if axis is None:
                 raise ValueError(f"add_torque: {label} is a ball joint; give the torque axis")
@@ -935,6 +1098,14 @@ class ModelBuilder:
         if self._ik_targets:
             raise ValueError(f"finalize: IK target 0 (on body {self._ik_targets[0].body}): the impulse solver has no "
                              "IK target constraint; use solver='dbd'")  # fmt: skip
+        for index, joint in enumerate(self._joints):
+            label = f"{JOINT_KIND_NAMES[joint.kind]} joint {index} ({joint.name!r})"
+            if joint.kind in (UNIVERSAL, GIMBAL):
+                raise ValueError(f"finalize: {label}: the impulse solver has no velocity rows for universal or gimbal "
+                                 "joints; use solver='dbd'")  # fmt: skip
+            if np.any(joint.armature > 0.0):
+                raise ValueError(f"finalize: {label} has armature: the impulse solver has no rotor rows; use "
+                                 "solver='dbd', or leave the armature out")  # fmt: skip
 
     def _resolve_bodies(self) -> tuple[list[_Body], list[tuple[np.ndarray, np.ndarray]]]:
         """Bodies with every mass and inertia filled in, and each shape's pose in its body's frame.
@@ -1046,18 +1217,37 @@ class ModelBuilder:
             return StaticArray(np.reshape(np.asarray(rows, dtype=np.int32), (-1, width)))
 
         js = self._joints
+
+        def local_axes(side: str) -> jnp.ndarray:
+            """(J, 3, 3) the hinge axes of universal and gimbal joints in one side's body frame."""
+            rows = [np.eye(3) if j.axes is None else
+                    np.stack([host_math.rotate(frame(getattr(j, side))[1], axis, inverse=True) for axis in j.axes])
+                    for j in js]  # fmt: skip
+            return jnp.asarray(np.reshape(np.asarray(rows, dtype=np.float64), (-1, 3, 3)))
+
         joints = Joints(
             local_anchor_a=table([local_point(j.body_a, j.anchor) for j in js], 3),
             local_anchor_b=table([local_point(j.body_b, j.anchor) for j in js], 3),
             local_axis_a=table([host_math.rotate(frame(j.body_a)[1], j.axis, inverse=True) for j in js], 3),
-            local_axis_b=table([host_math.rotate(frame(j.body_b)[1], j.axis, inverse=True) for j in js], 3),
+            local_axis_b=table([host_math.rotate(frame(j.body_b)[1], j.axis if j.axis_b is None else j.axis_b,
+                                                 inverse=True) for j in js], 3),  # fmt: skip
             rest_rotation=table([host_math.multiply(host_math.conjugate(frame(j.body_a)[1]), frame(j.body_b)[1])
                                  for j in js], 4),  # fmt: skip
             **{f: column(js, f) for f in ("lower", "upper", "cone_limit", "relaxation", "regularization",
                                           "drive_stiffness", "drive_damping", "drive_max_torque", "motor_max_force")},
+            local_axes_a=local_axes("body_a"),
+            local_axes_b=local_axes("body_b"),
+            **{f: table([getattr(j, f) for j in js], 3) for f in ("axis_lower", "axis_upper", "axis_stiffness",
+                                                                  "axis_damping", "armature")},
             baumgarte=jnp.asarray(np.asarray([options.baumgarte if j.baumgarte is None else j.baumgarte for j in js],
                                              dtype=np.float64)),
         )  # fmt: skip
+        # a torque on a degree of freedom with armature acts through the joint's rotor row
+        in_joint = [js[t.joint].armature[max(t.dof, 0)] > 0.0 for t in self._torques]
+        for t, inside in zip(self._torques, in_joint, strict=True):
+            if inside and js[t.joint].kind == BALL:
+                raise ValueError(f"finalize: ball joint {t.joint} ({js[t.joint].name!r}) has armature and a torque "
+                                 "actuator; that combination is not supported")  # fmt: skip
 
         def links(records) -> tuple[dict, StaticArray]:
             arrays = dict(
@@ -1135,6 +1325,11 @@ class ModelBuilder:
             joint_passive_drive=StaticArray(np.asarray([j.passive_drive for j in js], dtype=bool)),
             ik_target_bodies=body_table([(t.body, n) for t in self._ik_targets], 2),
             ik_target_control=body_table([[t.control + k for k in range(3)] for t in self._ik_targets], 3),
+            joint_axis_limited=StaticArray(np.reshape(np.asarray([j.axis_limited for j in js], dtype=bool), (-1, 3))),
+            torque_joint=StaticArray(np.asarray([t.joint for t in self._torques], dtype=np.int32)),
+            torque_dof=StaticArray(np.asarray([t.dof for t in self._torques], dtype=np.int32)),
+            torque_in_joint=StaticArray(np.asarray(in_joint, dtype=bool)),
+            joint_rotor=StaticArray(np.reshape(np.asarray([j.armature > 0.0 for j in js], dtype=bool), (-1, 3))),
         )
         contacts = len(structure.contact_groups)  # contact groups in colours of their own (colouring.py)
         contact_class = [0] * (len(structure.family_bodies()) - contacts) + [1] * contacts

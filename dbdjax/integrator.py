@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dbdjax import math
-from dbdjax.model import Model, State
+from dbdjax.model import UNIVERSAL, Model, State
 
 
 def predict(model: Model, state: State, h: float, control: jnp.ndarray | None = None) -> State:
@@ -42,7 +42,11 @@ def actuator_wrenches(model: Model, state: State, control: jnp.ndarray) -> tuple
 
     Angular: tau = gear u n on b and -tau on a, n the normalised sum of the axis carried by a and
     by b. Linear (slider): F = gear u n on b (n carried by a) and -F on a at b's centre of mass,
-    so the pair exerts no net moment and does no work but on the slider's travel.
+    so the pair exerts no net moment and does no work but on the slider's travel. On hinge k of a
+    universal or gimbal joint: tau = gear u g_k, g_k the gradient of that hinge's angle
+    (`math.euler_angles`), so that the torque pair is the generalised force gear u on hinge k alone.
+    Torques on a degree of freedom with armature are left out: they act through the joint's rotor
+    row (`constraints.joints`), which moves bodies and rotor together.
     """
     structure = model.structure
     n = structure.num_bodies
@@ -50,11 +54,21 @@ def actuator_wrenches(model: Model, state: State, control: jnp.ndarray) -> tuple
     pos = jnp.concatenate([state.pos, jnp.zeros((1, 3), state.pos.dtype)])
     quat = jnp.concatenate([state.quat, math.quat_identity((1,)).astype(state.quat.dtype)])
     u = jnp.asarray(control, state.pos.dtype)[structure.torque_control.array] * model.torques.gear
+    if structure.torque_in_joint.array.size:  # these act through their joint's rotor row (armature)
+        u = jnp.where(jnp.asarray(structure.torque_in_joint.array), 0.0, u)
     axis_a = math.quat_rotate(quat[a], model.torques.local_axis_a)
     axis_b = math.quat_rotate(quat[b], model.torques.local_axis_b)
     linear = jnp.asarray(structure.torque_linear.array)[:, None]
     turning, _ = math.safe_normalize(axis_a + axis_b)
     direction = jnp.where(linear, axis_a, turning)
+    dof = structure.torque_dof.array
+    if dof.size and (dof >= 0).any():  # hinges of universal and gimbal joints
+        joint = structure.torque_joint.array
+        axes_a = math.quat_rotate(quat[a][:, None], model.joints.local_axes_a[joint])
+        axes_b = math.quat_rotate(quat[b][:, None], model.joints.local_axes_b[joint])
+        _, gradients = math.euler_angles(axes_a, axes_b, structure.joint_kind.array[joint] == UNIVERSAL)
+        on_hinge = gradients[np.arange(len(dof)), np.maximum(dof, 0)]
+        direction = jnp.where(jnp.asarray(dof >= 0)[:, None], on_hinge, direction)
     push = u[:, None] * direction
     force_b = jnp.where(linear, push, 0.0)
     torque_b = jnp.where(linear, 0.0, push)

@@ -212,3 +212,58 @@ def inverse3(matrix: jnp.ndarray) -> jnp.ndarray:
     c2 = cross(matrix[..., 0, :], matrix[..., 1, :])
     determinant = dot(matrix[..., 0, :], c0)
     return jnp.stack([c0, c1, c2], axis=-1) / determinant[..., None, None]
+
+
+def euler_angles(
+    axes_a: jnp.ndarray, axes_b: jnp.ndarray, universal: jnp.ndarray | bool
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Angles of two or three successive hinges through one point, as MuJoCo composes the hinges
+    of one body, and the directions in which each angle grows.
+
+    The relative rotation is X = R(m1, t1) R(m2, t2) R(m3, t3) (b's orientation = a's X rest),
+    each hinge axis in the frame the previous rotations left: m1 is fixed in a, m3 in b, m2 in
+    between. axes_a: (..., 3, 3) rows m1, m2, m3 as carried by body a (world), axes_b the same
+    three as carried by body b; all three mutually perpendicular, handedness s = m1 . (m2 x m3).
+    With M_ij = axes_a[i] . axes_b[j] = m_i . X m_j, M = Rx(s t1) Ry(s t2) Rz(s t3) in the
+    (m1, m2, m3) basis (conjugating by a reflection reverses the sense of rotation), so
+      t1 = s atan2(-M12, M22), t2 = s atan2(M02, |(M12, M22)|), t3 = s atan2(-M01, M00),
+    t1, t3 in (-pi, pi], t2 in [-pi/2, pi/2]: a gimbal, singular at |t2| = pi/2 where m1 and m3
+    align. universal: (...) bool (a Python bool traces one kind only); two hinges (m3 = m1 x m2,
+    t3 = 0 held by the joint's lock row): t1 = atan2(M21, M11) (m2 carried by b, seen about m1),
+    t2 = atan2(M02, M00) (m1 carried by a, seen about m2 in b), both in (-pi, pi], no singularity.
+
+    Returns (angles (..., 3) rad, directions (..., 3, 3)): row k is g_k = d t_k / d delta, delta a
+    small world rotation of b relative to a. They are the dual basis of the current hinge axes
+    (m1 on a, e2, m3 on b): with c = m3_b x m1_a (|c| = cos t2), g1 = (c x m3_b) / |c|^2,
+    g2 = e2 = s c / |c|, g3 = (m1_a x c) / |c|^2. A torque tau g_k on b (and -tau g_k on a) is the
+    generalised force tau on hinge k alone. For the universal joint g1 = m1_a, g2 = m2_b, g3 = 0
+    (exact while the lock row holds m1_a . m2_b = 0). |c|^2 is floored at 1e-6 (cos t2 >= 1e-3)
+    so the directions stay finite at the gimbal singularity.
+    """
+    products = dot(axes_a[..., :, None, :], axes_b[..., None, :, :])  # (..., 3, 3): M_ij
+    m = [[products[..., i, j] for j in range(3)] for i in range(3)]
+    first = axes_a[..., 0, :]
+    if universal is not True:
+        s = dot(first, cross(axes_a[..., 1, :], axes_a[..., 2, :]))
+        middle_cos = safe_sqrt(m[1][2] ** 2 + m[2][2] ** 2)
+        gimbal = jnp.stack(
+            [s * safe_atan2(-m[1][2], m[2][2]), s * safe_atan2(m[0][2], middle_cos), s * safe_atan2(-m[0][1], m[0][0])],
+            axis=-1,
+        )
+        last = axes_b[..., 2, :]
+        common = cross(last, first)
+        middle, size = safe_normalize(common)
+        squared = jnp.maximum(size * size, 1e-6)[..., None]
+        gimbal_directions = jnp.stack(
+            [cross(common, last) / squared, s[..., None] * middle, cross(first, common) / squared], axis=-2
+        )
+        if universal is False:
+            return gimbal, gimbal_directions
+    two = jnp.stack([safe_atan2(m[2][1], m[1][1]), safe_atan2(m[0][2], m[0][0]), jnp.zeros_like(m[0][0])], axis=-1)
+    two_directions = jnp.stack([first, axes_b[..., 1, :], jnp.zeros_like(first)], axis=-2)
+    if universal is True:
+        return two, two_directions
+    universal = jnp.asarray(universal)
+    angles = jnp.where(universal[..., None], two, gimbal)
+    directions = jnp.where(universal[..., None, None], two_directions, gimbal_directions)
+    return angles, directions

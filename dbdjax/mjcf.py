@@ -15,25 +15,42 @@ joints   hinge -> hinge, slide -> slider, ball -> ball, free -> nothing. Limits 
          wraps there). A ball range r becomes cone_limit r and twist limits (-r, r) about the
          bone (MuJoCo limits the total rotation angle; ours bounds swing and twist separately,
          a superset). Several joints on one body:
-           2 or 3 hinges through one point (the humanoid's abdomen, hips, shoulders) -> one ball
-             joint: the twist axis is the last hinge's axis with that hinge's range as twist
-             limits, and the cone limit is the largest |bound| of the other hinges. A 2-hinge
-             body thus gains a third rotational freedom, and the per-axis box of ranges becomes
-             a cone: an approximation (the catalogue has no universal / 3-axis Euler joint yet).
+           2 or 3 mutually perpendicular hinges through one point (the humanoid's abdomen, hips,
+             shoulders) -> a universal (2) or gimbal (3) joint: MuJoCo's successive hinges, the
+             relative rotation R(axis1, q1) R(axis2, q2) R(axis3, q3) with each hinge's own
+             range as a per-hinge limit, exact. The gimbal's middle angle lives in [-pi/2, pi/2]
+             (the decomposition is singular at +-pi/2, where axes 1 and 3 align): a middle range
+             wider than that is clipped to it, an approximation.
+           3 perpendicular hinges that each have a position actuator (dbdjax/assets/ragdoll.xml's
+             way of writing a ball joint with a ball drive) -> one ball joint with that drive
+             (`_ball_drive`), as below: an approximation of MuJoCo's successive hinges.
+           2 or 3 hinges through one point at other angles -> one ball joint: the twist axis is
+             the last hinge's axis with that hinge's range as twist limits, and the cone limit
+             is the largest |bound| of the other hinges (an approximation: a 2-hinge body gains
+             a third rotational freedom and the box of ranges becomes a cone).
            slide, slide, hinge with the hinge axis normal to both slides (the planar roots of
              hopper, walker2d, half_cheetah) -> a planar joint, exact.
            anything else -> ValueError naming the body.
-         Joint stiffness (toward springref) and damping become implicit passive forces
-         (`ModelBuilder.add_force`): per hinge axis on merged hinges, isotropic on ball joints,
-         along the axis on slides. Armature is ignored (no rotor inertia in maximal
-         coordinates), as are solref/solimp/margin (our joints and limits are rigid).
+         Joint stiffness (toward springref) and damping become implicit spring rows of the joint
+         (`ModelBuilder.add_joint_spring`): exact per hinge on hinge, universal and gimbal joints,
+         isotropic (the mean of the dofs) on ball joints and on hinges merged into a ball; on
+         slides, an implicit passive force along the axis (`ModelBuilder.add_force`). Planar
+         roots refuse them (none of the Brax models has any).
+         Armature (rotor inertia on a dof) -> `ModelBuilder.add_armature`: MuJoCo's kinetic energy
+         1/2 armature qdot^2 on the joint's own coordinate, as one implicit row per degree of
+         freedom (hinge, slide, ball, each hinge of a universal / gimbal joint, a planar joint's
+         rotation), which holds whatever the parent does; a motor on such a dof acts through that
+         row, so it accelerates bodies and rotor together as in MuJoCo. Not mapped (ignored): the
+         armature of free joints, of a planar joint's slides and of hinges merged into a ball.
+         solref/solimp/margin are ignored too (our joints and limits are rigid).
 geoms    sphere, capsule, box -> add_sphere/capsule/box in the body's inertial frame; plane ->
          add_plane (world only: normal = the geom's z axis, offset = normal . pos). friction[0]
          -> friction (condim 1: frictionless), contype/conaffinity kept, <exclude> pairs ->
          exclude_collision. Contacts with the world are allowed for bodies jointed to the world
          (MuJoCo's parent filter skips the world). Other geom types raise a ValueError naming the
          geom, unless contype = conaffinity = 0 (visual only; MuJoCo already counted its mass).
-actuator motor (gain fixed, no bias) -> add_torque(gear * gain): control = MuJoCo's ctrl.
+actuator motor (gain fixed, no bias) -> add_torque(gear * gain): control = MuJoCo's ctrl. On a
+         hinge of a universal / gimbal joint it is the generalised force on that hinge alone.
          position (kp, kv; gear 1, hinge) -> add_drive(stiffness=kp, damping=kv, max_torque from
          a symmetric forcerange): control = target angle - qpos0 (= MuJoCo's ctrl when ref = 0).
          Three position actuators on the hinges of a merged ball joint (about the parent's frame
@@ -216,10 +233,12 @@ def _is_position(mujoco, m, a: int) -> bool:
             and bias[1] == -m.actuator_gainprm[a, 0])  # fmt: skip
 
 
-def _spring(m, builder: ModelBuilder, ours: int, joints: list[int], dofs: list[int], positioned: set[int]) -> None:
-    """MuJoCo hinge/ball stiffness and damping -> the joint's drive row with a fixed target (the
-    mean over merged hinges or a ball's dofs: exact for one hinge, an approximation otherwise).
-    A hinge with a position actuator gets its damping in that actuator's drive instead."""
+def _spring(m, builder: ModelBuilder, ours: int, joints: list[int], dofs: list[int], positioned: set[int],
+            per_axis: bool = False) -> None:  # fmt: skip
+    """MuJoCo hinge/ball stiffness and damping -> the joint's drive row with a fixed target: per
+    hinge on universal and gimbal joints (`per_axis`, exact), else the mean over a ball's dofs or
+    the hinges merged into a ball (exact for one hinge, an approximation otherwise). A hinge with
+    a position actuator gets its damping in that actuator's drive instead."""
     stiffness = float(np.mean([m.jnt_stiffness[j] for j in joints]))
     damping = float(np.mean([m.dof_damping[k] for k in dofs]))
     for j in joints:
@@ -232,8 +251,21 @@ def _spring(m, builder: ModelBuilder, ours: int, joints: list[int], dofs: list[i
             raise ValueError(f"load_mjcf: MJCF {_label(m, 'joint', joints[0])}: joint stiffness together with a "
                              "position actuator is not supported")  # fmt: skip
         return
-    if stiffness != 0.0 or damping != 0.0:
+    if per_axis and any(
+        m.jnt_stiffness[j] != 0.0 or m.dof_damping[k] != 0.0 for j, k in zip(joints, dofs, strict=True)
+    ):
+        builder.add_joint_spring(ours, stiffness=[float(m.jnt_stiffness[j]) for j in joints],
+                                 damping=[float(m.dof_damping[k]) for k in dofs])  # fmt: skip
+    elif not per_axis and (stiffness != 0.0 or damping != 0.0):
         builder.add_joint_spring(ours, stiffness=stiffness, damping=damping)
+
+
+def _armature(m, builder: ModelBuilder, ours: int, joints: list[int]) -> None:
+    """MuJoCo joint armature -> the joint's rotor rows (`ModelBuilder.add_armature`): one number per
+    hinge of a universal / gimbal joint, else the joint's one (a ball's three dofs share it)."""
+    values = [float(m.dof_armature[m.jnt_dofadr[j]]) for j in joints]
+    if any(values):
+        builder.add_armature(ours, values if len(values) > 1 else values[0])
 
 
 def _add_body_joints(mujoco, m, d, builder: ModelBuilder, i: int, body_index, body_quat, joint_of, positioned) -> None:
@@ -280,10 +312,12 @@ def _add_body_joints(mujoco, m, d, builder: ModelBuilder, i: int, body_index, bo
             ours = builder.add_hinge_joint(parent, child, anchor, axes[0], limits(j, clip=True), name=names[0])
             joint_of[j] = (ours, "hinge", axes[0])
             _spring(m, builder, ours, [j], [m.jnt_dofadr[j]], positioned)
+            _armature(m, builder, ours, [j])
         elif kind == J.mjJNT_SLIDE:
             ours = builder.add_slider_joint(parent, child, anchor, axes[0], limits(j, clip=False), name=names[0])
             joint_of[j] = (ours, "slide", axes[0])
             _passive_linear(m, d, builder, parent, child, j, axes[0], parent_quat, i)
+            _armature(m, builder, ours, [j])
         elif kind == J.mjJNT_BALL:
             cone = None
             if m.jnt_limited[j] and m.jnt_range[j][1] < math.pi:
@@ -292,14 +326,36 @@ def _add_body_joints(mujoco, m, d, builder: ModelBuilder, i: int, body_index, bo
             ours = builder.add_ball_joint(parent, child, anchor, cone_limit=cone, twist_limits=twist, name=names[0])
             joint_of[j] = (ours, "ball", None)
             _spring(m, builder, ours, [j], [m.jnt_dofadr[j] + k for k in range(3)], positioned)
+            _armature(m, builder, ours, [j])
         else:  # pragma: no cover - MuJoCo has no other joint type
             raise ValueError(f"load_mjcf: MJCF {_label(m, 'joint', j)}: unknown joint type {kind}")
         return
 
     hinges = [j for j, t in zip(joints, types, strict=True) if t == J.mjJNT_HINGE]
     slides = [j for j, t in zip(joints, types, strict=True) if t == J.mjJNT_SLIDE]
+    units = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    perpendicular = all(abs(units[i] @ units[k]) < 1e-6 for i in range(len(joints)) for k in range(i + 1, len(joints)))
+    # Three hinges each driven by a position actuator: the ball-drive convention of
+    # dbdjax/assets/ragdoll.xml (a ball joint with a rotation-vector target), kept as a ball.
+    position_driven = len(joints) == 3 and all(
+        any(int(m.actuator_trnid[a, 0]) == j and m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+            and _is_position(mujoco, m, a) for a in range(m.nu))
+        for j in joints
+    )  # fmt: skip
+    if len(hinges) == len(joints) and len(joints) <= 3 and perpendicular and not position_driven:
+        # Perpendicular hinges through one point -> a universal (2) or gimbal (3) joint, exact.
+        bounds = [limits(j, clip=True) for j in joints]
+        if len(joints) == 3 and bounds[1] is not None:  # the gimbal's middle angle lives in [-pi/2, pi/2]
+            bounds[1] = (max(bounds[1][0], -math.pi / 2), min(bounds[1][1], math.pi / 2))
+        add = builder.add_universal_joint if len(joints) == 2 else builder.add_gimbal_joint
+        ours = add(parent, child, anchor, axes, bounds, name="+".join(names))
+        for k, j in enumerate(joints):
+            joint_of[j] = (ours, "hinge of a multi-hinge body", k)
+        _spring(m, builder, ours, joints, [m.jnt_dofadr[j] for j in joints], positioned, per_axis=True)
+        _armature(m, builder, ours, joints)
+        return
     if len(hinges) == len(joints) and len(joints) <= 3:
-        # Hinges through one point -> a ball joint (approximation: see the module docstring).
+        # Hinges through one point at other angles -> a ball joint (approximation: module docstring).
         last = joints[-1]
         twist = limits(last, clip=True)
         others = [limits(j, clip=True) for j in joints[:-1]]
@@ -324,6 +380,7 @@ def _add_body_joints(mujoco, m, d, builder: ModelBuilder, i: int, body_index, bo
             ours = builder.add_planar_joint(parent, child, anchor, normal, name="+".join(names))
             for j in joints:
                 joint_of[j] = (ours, "planar", None)
+            _armature(m, builder, ours, hinges)  # the rotation's; the slides' is not mapped (module docstring)
             return
     kinds = [J(t).name.removeprefix("mjJNT_").lower() for t in types]
     raise ValueError(f"load_mjcf: MJCF {body}: the joint combination {list(zip(names, kinds, strict=True))} is not "
@@ -453,10 +510,11 @@ def _add_actuator(mujoco, m, d, builder: ModelBuilder, a: int, joint_of, body_qu
     if m.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE:  # motor: force = gain * ctrl * gear
         if m.actuator_forcelimited[a]:
             raise ValueError(f"load_mjcf: MJCF {label}: forcerange on a motor is not supported")
-        if how not in ("hinge", "slide", "merged"):
+        if how not in ("hinge", "slide", "merged", "hinge of a multi-hinge body"):
             raise ValueError(f"load_mjcf: MJCF {label}: a motor on {target} is not supported")
+        euler = how == "hinge of a multi-hinge body"  # the generalised force on that hinge alone
         controls = builder.add_torque(ours, gear=gear * gain, axis=axis if how == "merged" else None,
-                                      name=m.actuator(a).name or None)  # fmt: skip
+                                      dof=axis if euler else None, name=m.actuator(a).name or None)  # fmt: skip
         offset = 0.0
     elif _is_position(mujoco, m, a) and how == "merged":
         _ball_drive(mujoco, m, builder, a, ours, joint_of, body_quat, ball_drives)

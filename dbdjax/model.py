@@ -27,9 +27,11 @@ def with_world_row(array: jnp.ndarray, world_value: jnp.ndarray | float = 0.0) -
 
 
 # Joint kinds (`Structure.joint_kind`). PLANAR: motion in the plane normal to the axis plus rotation
-# about it (MJCF's slide-slide-hinge roots of hopper, walker2d, half_cheetah).
-BALL, HINGE, SLIDER, FIXED, PLANAR = 0, 1, 2, 3, 4
-JOINT_KIND_NAMES = ("ball", "hinge", "slider", "fixed", "planar")
+# about it (MJCF's slide-slide-hinge roots of hopper, walker2d, half_cheetah). UNIVERSAL, GIMBAL: two or
+# three successive perpendicular hinges through one point (MJCF's multi-hinge bodies: the humanoid's
+# abdomen, hips and shoulders), with per-axis limits, springs and torques.
+BALL, HINGE, SLIDER, FIXED, PLANAR, UNIVERSAL, GIMBAL = 0, 1, 2, 3, 4, 5, 6
+JOINT_KIND_NAMES = ("ball", "hinge", "slider", "fixed", "planar", "universal", "gimbal")
 
 
 def _pytree(cls, meta: tuple[str, ...] = ()):
@@ -121,6 +123,13 @@ class Joints:
       removes per substep (the DBD solver does not read it).
     drive_stiffness (N m/rad), drive_damping (N m s/rad), drive_max_torque (N m): (J,) the drive
       of DBD 9 (zero where a joint has none). motor_max_force: (J,) N (slider) or N m (hinge).
+    local_axes_a/b: (J, 3, 3) universal and gimbal joints: rows m1, m2, m3, the successive hinge
+      axes in each body frame (universal: m3 = m1 x m2); identity rows for the other kinds.
+    axis_lower/axis_upper: (J, 3) rad, per-hinge limits of universal and gimbal joints.
+    axis_stiffness (N m/rad), axis_damping (N m s/rad): (J, 3) per-hinge drive or spring of
+      universal and gimbal joints (their drive_max_torque bounds each hinge's torque).
+    armature: (J, 3) rotor inertia of each degree of freedom (MJCF armature): kg m^2 on hinge k of a
+      universal or gimbal joint, entry 0 for a hinge, planar or ball joint (kg for a slider).
     """
 
     local_anchor_a: jnp.ndarray
@@ -138,6 +147,13 @@ class Joints:
     drive_damping: jnp.ndarray
     drive_max_torque: jnp.ndarray
     motor_max_force: jnp.ndarray
+    local_axes_a: jnp.ndarray
+    local_axes_b: jnp.ndarray
+    axis_lower: jnp.ndarray
+    axis_upper: jnp.ndarray
+    axis_stiffness: jnp.ndarray
+    axis_damping: jnp.ndarray
+    armature: jnp.ndarray
 
 
 Joints = _pytree(Joints)
@@ -149,7 +165,9 @@ class Torques:
 
     Each applies gear * control as an external torque about its axis (hinge, ball: +tau on b,
     -tau on a) or force along it (slider: +F on b at its centre of mass, -F on a at that same
-    point), held over the substep in `integrator.predict`.
+    point), held over the substep in `integrator.predict`. On one hinge of a universal or gimbal
+    joint (`Structure.torque_dof`) it is the generalised force on that hinge's angle: the torque
+    about the dual direction of `math.euler_angles`, from the joint's own axes.
     gear: (T,) N m (or N) per unit of control. local_axis_a/b: (T, 3) the unit axis in the frames
     of the joint's two bodies (world coordinates for the world); angular actuators act about the
     normalised sum of the two (equal for a hinge), linear ones along a's.
@@ -326,8 +344,8 @@ class Structure:
 
     Body index N (one past the last body) is the world in the index arrays below, and control
     index num_controls means "no control".
-    joint_body_a/b: (J,) int. joint_kind: (J,) int (BALL, HINGE, SLIDER, FIXED).
-    joint_has_limits / joint_has_cone: (J,) bool.
+    joint_body_a/b: (J,) int. joint_kind: (J,) int (BALL, HINGE, SLIDER, FIXED, PLANAR, UNIVERSAL,
+    GIMBAL). joint_has_limits / joint_has_cone: (J,) bool.
     joint_drive_control: (J, 3) int, the control entries of each joint's drive target.
     joint_motor_control: (J,) int, the control entry of each joint's motor speed.
     spring_bodies (L, 2), distance_bodies (D, 2), volume_bodies (V, 4): int.
@@ -377,6 +395,16 @@ class Structure:
     # entries of each target's offset.
     ik_target_bodies: StaticArray = StaticArray(np.zeros((0, 2), np.int32))
     ik_target_control: StaticArray = StaticArray(np.zeros((0, 3), np.int32))
+    # (J, 3) bool: which hinges of a universal or gimbal joint have limits. Empty: none.
+    joint_axis_limited: StaticArray = StaticArray(np.zeros((0, 3), bool))
+    # (T,) int: the joint of each torque actuator, and the hinge (0, 1, 2) of a universal or gimbal
+    # joint it acts on (-1: the joint's own axis). Empty: no torque acts on such a hinge.
+    torque_joint: StaticArray = StaticArray(np.zeros((0,), np.int32))
+    torque_dof: StaticArray = StaticArray(np.zeros((0,), np.int32))
+    # (T,) bool: the torque acts through its joint's rotor row (its degree of freedom has armature)
+    # instead of in the prediction. (J, 3) bool: which degrees of freedom of each joint have armature.
+    torque_in_joint: StaticArray = StaticArray(np.zeros((0,), bool))
+    joint_rotor: StaticArray = StaticArray(np.zeros((0, 3), bool))
 
     @property
     def num_colours(self) -> int:

@@ -5,7 +5,7 @@ step(model, state, control):
     solver="dbd":
     X*, V*  = integrator.predict(model, state, h)                  DBD (21)-(24)
     slots   = collision.detect(model, state, X*, h)                fixed shape, inactive masked
-    dX, lam = solvers.dbd.solve(model, X*, control, slots, h)      Algorithm 1, (45)-(52), (84)-(93)
+    dX, lam = solvers.dbd.solve(model, X*, control, slots, h, X)   Algorithm 1, (45)-(52), (84)-(93)
     state   = integrator.apply(X*, dX, h)                          (36)-(39)
     state   = solvers.dbd.restitution(model, state, slots, lam, h) velocity pass (SI 2.1.4)
     solver="impulse":
@@ -63,7 +63,7 @@ def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -
         return impulse.integrate(state, predicted, velocity, spin, impulses, h)
     predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)
-    displacement, rotation, normal_multipliers = dbd.solve(model, predicted, control, slots, h)
+    displacement, rotation, normal_multipliers = dbd.solve(model, predicted, control, slots, h, start=state)
     state = integrator.apply(predicted, displacement, rotation, h)
     return dbd.restitution(model, state, slots, normal_multipliers, h)
 

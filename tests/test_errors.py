@@ -48,7 +48,10 @@ def builder_with_two_bodies():
         (lambda b: b.add_ball_joint(0, 1, anchor=(0, 0, 0), cone_limit=-0.1), r"ball joint 0: cone_limit must be in"),
         (lambda b: b.add_ball_joint(0, 1, anchor=(0, 0, 0), relaxation=2.5), r"ball joint 0: relaxation must be in"),
         (lambda b: b.add_drive(0, stiffness=1.0), r"add_drive: joint = 0 is not a joint index"),
-        (lambda b: b.add_drive(b.add_fixed_joint(0, 1, (0, 0, 0)), 1.0), r"add_drive: fixed joint 0 .*hinge and ball"),
+        (
+            lambda b: b.add_drive(b.add_fixed_joint(0, 1, (0, 0, 0)), 1.0),
+            r"add_drive: fixed joint 0 .*hinge, ball, universal and gimbal",
+        ),
         (lambda b: b.add_drive(b.add_ball_joint(0, 1, (0, 0, 0)), -5.0), r"add_drive on ball joint 0 .*stiffness must"),
         (
             lambda b: b.add_drive(b.add_ball_joint(0, 1, (0, 0, 0), name="hip"), 5.0, max_torque=0.0),
@@ -71,6 +74,27 @@ def builder_with_two_bodies():
         (lambda b: b.finalize(iterations=0), r"finalize: iterations must be a positive integer"),
         (lambda b: b.finalize(substeps=1.5), r"finalize: substeps must be a positive integer"),
         (lambda b: b.finalize(solver="magic"), r"finalize: unknown solver 'magic'"),
+        (
+            lambda b: (
+                b.add_universal_joint(0, 1, (0, 0, 0), [(0, 0, 1), (0, 1, 0)], name="hip"),
+                b.finalize(solver="impulse"),
+            ),
+            r"finalize: universal joint 0 \('hip'\): the impulse solver has no velocity rows for universal",
+        ),
+        (
+            lambda b: (
+                b.add_gimbal_joint(0, 1, (0, 0, 0), [(0, 0, 1), (0, 1, 0), (1, 0, 0)]),
+                b.finalize(solver="impulse"),
+            ),
+            r"finalize: gimbal joint 0 \('gimbal joint 0'\): the impulse solver has no velocity rows",
+        ),
+        (
+            lambda b: (
+                b.add_armature(b.add_hinge_joint(0, 1, (0, 0, 0), (0, 1, 0), name="knee"), 0.1),
+                b.finalize(solver="impulse"),
+            ),
+            r"finalize: hinge joint 0 \('knee'\) has armature: the impulse solver has no rotor rows",
+        ),
     ],
 )
 def test_bad_input_raises_value_error_naming_the_item(call, message):

@@ -152,17 +152,18 @@ def test_ball_joint_closes_a_small_gap_in_any_direction_in_one_projection():
     assert after < 1e-3 * before, f"gap {before:.3e} m -> {after:.3e} m after one projection"
 
 
-@pytest.mark.parametrize("kind", ["hinge", "fixed"])
+@pytest.mark.parametrize("kind", ["hinge", "fixed", "universal", "gimbal"])
 def test_driven_chain_damps_a_tiny_perturbation_instead_of_amplifying_it(float64, kind):
     """A 1e-9 m nudge of one link changes the next state by about as much, not by rad/s.
 
-    Five links in a chain from the world with drives (hinges about z, y, z, ...; or fixed joints
-    with the drives left out), 16 substeps x 16 iterations. When the hinge's axle alignment was a
-    single row along the normalised cross product of the two axes, that direction was rounding
-    noise where the axes agree, and the sweeps amplified it: the nudge changed the angular
-    velocities after one step by 13 rad/s (0.16 rad/s with fixed joints, whose lock was a row
-    along the normalised rotation vector). The block form of the rotation lock changes them by
-    about 1e-8."""
+    Five links in a chain from the world with drives (hinges about z, y, z, ...; universal joints
+    about (z, y), gimbal joints about (z, y, x), each hinge driven; or fixed joints with the
+    drives left out), 16 substeps x 16 iterations. When the hinge's axle alignment was a single
+    row along the normalised cross product of the two axes, that direction was rounding noise
+    where the axes agree, and the sweeps amplified it: the nudge changed the angular velocities
+    after one step by 13 rad/s (0.16 rad/s with fixed joints, whose lock was a row along the
+    normalised rotation vector). The block form of the rotation lock changes them by about 1e-8;
+    the universal joint's lock row (c = m1_a . m2_b) has a unit direction where it holds."""
     builder = dbd.ModelBuilder(gravity=(0.0, 0.0, -9.81))
     parent = dbd.WORLD
     for k in range(5):
@@ -171,11 +172,21 @@ def test_driven_chain_damps_a_tiny_perturbation_instead_of_amplifying_it(float64
         if kind == "hinge":
             joint = builder.add_hinge_joint(parent, body, anchor=anchor, axis=axis, limits=(-2.0, 2.0))
             builder.add_drive(joint, 300.0, 30.0, 200.0)
+        elif kind == "universal":
+            axes = [(0.0, 0.0, 1.0), (0.0, 1.0, 0.0)]
+            joint = builder.add_universal_joint(parent, body, anchor=anchor, axes=axes, limits=[(-2.0, 2.0)] * 2)
+            builder.add_drive(joint, 300.0, 30.0, 200.0)
+        elif kind == "gimbal":
+            axes = [(0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (1.0, 0.0, 0.0)]
+            limits = [(-2.0, 2.0), (-1.2, 1.2), (-2.0, 2.0)]
+            joint = builder.add_gimbal_joint(parent, body, anchor=anchor, axes=axes, limits=limits)
+            builder.add_drive(joint, 300.0, 30.0, 200.0)
         else:
             builder.add_fixed_joint(parent, body, anchor=anchor)
         parent = body
     model = builder.finalize(dt=1 / 60, substeps=16, iterations=16)
-    control = jnp.asarray([1.2, -0.9, 1.4, 0.3, -1.1][: model.control_range.shape[0]], jnp.float64)
+    targets = [1.2, -0.9, 1.4, 0.3, -1.1, 0.7, -0.4, 0.9, -1.0, 0.5, 0.2, -0.6, 1.1, -0.3, 0.8]
+    control = jnp.asarray(targets[: model.control_range.shape[0]], jnp.float64)
     step = jax.jit(lambda s: dbd.step(model, s, control))
     start = dbd.init(model)
     nudged = dataclasses.replace(start, pos=start.pos.at[2, 1].add(1e-9))

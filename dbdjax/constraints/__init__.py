@@ -18,7 +18,7 @@ from dbdjax import math
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import contacts as contact
 from dbdjax.constraints import forces, joints, links, multibody, targets
-from dbdjax.model import Model
+from dbdjax.model import Model, State
 
 
 class Family(NamedTuple):
@@ -40,9 +40,10 @@ class Family(NamedTuple):
 
 
 def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float,
-             dtype) -> list[Family]:  # fmt: skip
+             dtype, predicted: State | None = None, start: State | None = None) -> list[Family]:  # fmt: skip
     """Every constraint family of `model`, with this step's control and contact slots, for
-    substeps of h seconds (contact groups last)."""
+    substeps of h seconds (contact groups last). predicted, start: the substep's prediction X*
+    and the state it began from (for the joints' armature rows, `joints.rotor_offsets`)."""
     structure = model.structure
     tables = structure.family_bodies()
     world = structure.num_bodies
@@ -50,7 +51,11 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
     def on_world(table: np.ndarray) -> np.ndarray:
         return table == world
 
-    joint_targets = joints.targets(structure, control, dtype)
+    gear = None if model.torques is None else model.torques.gear
+    offsets = None
+    if start is not None and predicted is not None and structure.joint_rotor.array.any():
+        offsets = joints.rotor_offsets(model, predicted, start, h)
+    joint_targets = joints.targets(structure, control, dtype, gear, offsets)
     rows = joints.rows_in_use(structure)
     result = [
         Family(

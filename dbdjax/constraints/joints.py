@@ -1,4 +1,4 @@
-"""Joints: ball, hinge, slider and fixed, each one node of the constraint graph.
+"""Joints: ball, hinge, slider, fixed, planar, universal and gimbal, each one node of the constraint graph.
 
 All rows of one joint (drive, motor, angular lock, angle limits, cone, slider limits, then the
 point constraint) are projected together, one after another, in `project` (Gauss-Seidel inside
@@ -14,27 +14,56 @@ Row by kind:
          motor (SI 2.3.6)
   fixed  point, rotation lock (SI 2.5)
   planar the point row along the normal only, axle alignment as a hinge's (MJCF slide-slide-hinge)
-Drives and motors go first so that the hard rows, and the point block last of all, have the last word.
+  universal  point, lock (the angle between hinge axis 1 on a and axis 2 on b held at 90 degrees: the
+         axle row of DBD (73)-(80) with that offset), per-hinge angle limits, per-hinge drive
+  gimbal point, per-hinge angle limits, per-hinge drive (three successive hinges, no lock)
+  The hinge angles of universal and gimbal joints are MuJoCo's successive hinge angles
+  (`math.euler_angles`); each limit is a one-sided row on one angle (SI (108), (115), clamped as
+  DBD (83)) and each drive a spring row on one angle (DBD 9), along that angle's gradient g_k
+  (the dual basis of the hinge axes), so its impulse is a generalised force on that hinge alone.
+Every kind: armature (rotor inertia on the joint's coordinates, MuJoCo's armature), one implicit
+  spring row per degree of freedom with k h^2 = armature toward the coordinate's inertial
+  prediction, less what a torque actuator on it drives (`ModelBuilder.add_armature`).
+Rotors, drives and motors go first so that the hard rows, and the point block last of all, have the
+last word.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import math
+from dbdjax import integrator, math
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
-from dbdjax.model import BALL, FIXED, HINGE, PLANAR, SLIDER, Joints, Structure
+from dbdjax.model import (
+    BALL,
+    FIXED,
+    GIMBAL,
+    HINGE,
+    PLANAR,
+    SLIDER,
+    UNIVERSAL,
+    Joints,
+    Model,
+    State,
+    Structure,
+    with_world_row,
+)
 
 # Multipliers of one joint, in the order of `project`'s rows. The ball drive's torque, the
 # rotation lock's and the point block's impulses are 3-vectors: they own slots [DRIVE, DRIVE + 3),
-# [ROTATION_LOCK, ROTATION_LOCK + 3) and [POINT, POINT + 3).
+# [ROTATION_LOCK, ROTATION_LOCK + 3) and [POINT, POINT + 3). A universal joint's lock row owns
+# ROTATION_LOCK (its three-row block is inactive there). A universal or gimbal joint's hinge k owns
+# DRIVE + k, EULER_LOWER + k and EULER_UPPER + k; the rotor of degree of freedom k (a ball's: all
+# three) owns ROTOR + k.
 DRIVE, MOTOR, ROTATION_LOCK, ANGLE_LOWER, ANGLE_UPPER, CONE = 0, 3, 4, 7, 8, 9
 TRAVEL_LOWER, TRAVEL_UPPER, POINT = 10, 11, 12
-NUM_MULTIPLIERS = POINT + 3
+EULER_LOWER, EULER_UPPER, ROTOR = 15, 18, 21
+NUM_MULTIPLIERS = ROTOR + 3
 
 
 class JointFlags(NamedTuple):
@@ -53,6 +82,14 @@ class JointFlags(NamedTuple):
     angular_motor: np.ndarray  # hinge
     linear_motor: np.ndarray  # slider
     planar: np.ndarray  # planar joints (axle row as a hinge, point row along the normal)
+    universal: np.ndarray  # universal joints (the lock row, two hinge angles)
+    gimbal: np.ndarray  # gimbal joints (three hinge angles)
+    euler_limited: np.ndarray  # (J, 3): limits on hinge k of a universal or gimbal joint
+    euler_drive: np.ndarray  # a drive or spring on the hinges of a universal or gimbal joint
+    rotor_hinge: np.ndarray  # armature on a hinge or on a planar joint's rotation
+    rotor_slider: np.ndarray  # armature along a slider
+    rotor_ball: np.ndarray  # armature on a ball joint (isotropic)
+    rotor_euler: np.ndarray  # (J, 3): armature on hinge k of a universal or gimbal joint
 
 
 class Targets(NamedTuple):
@@ -60,6 +97,8 @@ class Targets(NamedTuple):
 
     drive: jnp.ndarray  # (3,) hinge: [angle, 0, 0] rad; ball: rotation vector, rad, in a's frame
     motor: jnp.ndarray  # () rad/s (hinge) or m/s (slider)
+    torque: jnp.ndarray  # (3,) N m (N) of torque actuators acting through the rotor row of each dof
+    rotor: jnp.ndarray  # (3,) q(X*) - (2 q(X^t) - q(X^t-1)) of each dof with armature (`rotor_offsets`)
 
 
 def flags(structure: Structure) -> JointFlags:
@@ -71,6 +110,13 @@ def flags(structure: Structure) -> JointFlags:
         drive = drive | structure.joint_passive_drive.array
     motor = structure.joint_motor_control.array < structure.num_controls
     world = structure.num_bodies
+    euler = (kind == UNIVERSAL) | (kind == GIMBAL)
+    axis_limited = structure.joint_axis_limited.array
+    if axis_limited.shape[0] != len(kind):  # a structure built without per-axis limits
+        axis_limited = np.zeros((len(kind), 3), bool)
+    rotor = structure.joint_rotor.array
+    if rotor.shape[0] != len(kind):  # a structure built without armature
+        rotor = np.zeros((len(kind), 3), bool)
     return JointFlags(
         world_a=structure.joint_body_a.array == world,
         world_b=structure.joint_body_b.array == world,
@@ -85,18 +131,95 @@ def flags(structure: Structure) -> JointFlags:
         angular_motor=motor & (kind == HINGE),
         linear_motor=motor & (kind == SLIDER),
         planar=kind == PLANAR,
+        universal=kind == UNIVERSAL,
+        gimbal=kind == GIMBAL,
+        euler_limited=axis_limited & euler[:, None],
+        euler_drive=drive & euler,
+        rotor_hinge=rotor[:, 0] & ((kind == HINGE) | (kind == PLANAR)),
+        rotor_slider=rotor[:, 0] & (kind == SLIDER),
+        rotor_ball=rotor[:, 0] & (kind == BALL),
+        rotor_euler=rotor & euler[:, None],
     )
 
 
-def targets(structure: Structure, control: jnp.ndarray | None, dtype) -> Targets:
-    """Each joint's slice of the flat control vector, (J, 3) drive and (J,) motor targets."""
+def targets(
+    structure: Structure, control: jnp.ndarray | None, dtype, gear: jnp.ndarray | None = None,
+    rotor: jnp.ndarray | None = None,
+) -> Targets:  # fmt: skip
+    """Each joint's slice of the flat control vector, (J, 3) drive and (J,) motor targets, the
+    (J, 3) torques gear * u of the torque actuators that act through a rotor row (gear: (T,), the
+    torque actuators' `Torques.gear`), and the rotor rows' (J, 3) offsets (`rotor_offsets`; None:
+    zero, the rotor then coasts with the bodies' prediction)."""
     padded = jnp.zeros((structure.num_controls + 1,), dtype)  # the last entry reads as "no actuator"
     if control is not None:
         padded = padded.at[:-1].set(control)
+    torque = jnp.zeros((structure.num_joints, 3), dtype)
+    inside = np.flatnonzero(structure.torque_in_joint.array)
+    if inside.size and gear is not None:
+        push = padded[structure.torque_control.array[inside]] * gear[inside]
+        hinge = np.maximum(structure.torque_dof.array[inside], 0)
+        torque = torque.at[structure.torque_joint.array[inside], hinge].add(push)
     return Targets(
         drive=padded[structure.joint_drive_control.array],
         motor=padded[structure.joint_motor_control.array],
+        torque=torque,
+        rotor=jnp.zeros((structure.num_joints, 3), dtype) if rotor is None else rotor,
     )
+
+
+def _coordinates(joint: Joints, flag: JointFlags, pair: BodyPair, kinds: frozenset[str]):
+    """The joint's coordinates at the pair's pose: (hinge or planar angle, slider travel, universal /
+    gimbal angles (3,), relative rotation from rest (4,)), those of `kinds` only (else zeros)."""
+    zero = jnp.zeros((), pair.origin_a.dtype)
+    angle = hinge_angle(joint, pair)[0] if "rotor_hinge" in kinds else zero
+    travel = slider_travel(joint, flag, pair)[0] if "rotor_slider" in kinds else zero
+    euler = _euler_angles(joint, flag, pair, kinds)[0] if "rotor_euler" in kinds else jnp.zeros(3, zero.dtype)
+    relative = relative_rotation(joint, *pair.current_quats()) if "rotor_ball" in kinds else jnp.zeros(4, zero.dtype)
+    return angle, travel, euler, relative
+
+
+def rotor_offsets(model: Model, predicted: State, start: State, h: float) -> jnp.ndarray:
+    """(J, 3) q(X*) - q_rotor for each degree of freedom with armature: how far the bodies'
+    prediction X* carries the joint coordinate q beyond where the rotor's own inertia carries it,
+    q_rotor = q^t + (q^t - q^(t-1)) (its discrete velocity is the last substep's, as the bodies'
+    is: X^(t-1) = X^t - h V^t exactly in DBD (36)-(39)). Gravity and the other actuators' torques
+    move the bodies in X* but not the rotor, and q is curved in X (a hinge angle between two
+    turning bodies, a gimbal angle), so taking q(X*) as the rotor's prediction would not do.
+    Angles are differenced modulo 2 pi; a ball's entry is the world rotation vector."""
+    structure = model.structure
+    flag = flags(structure)
+    kinds = rows_in_use(structure)
+    a, b = structure.joint_body_a.array, structure.joint_body_b.array
+    identity = math.quat_identity().astype(start.quat.dtype)
+
+    def at(pos, quat) -> BodyPair:
+        pos, quat = with_world_row(pos), with_world_row(quat, identity)
+        zero = jnp.zeros((len(a), 3), pos.dtype)
+        scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
+        return BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 8))
+
+    poses = (at(predicted.pos, predicted.quat), at(start.pos, start.quat),
+             at(start.pos - h * start.vel, integrator.displaced_quat(start.quat, -h * start.ang_vel)))  # fmt: skip
+
+    def one(joint, flag, after, now, before):
+        (angle, travel, euler, relative) = zip(*(_coordinates(joint, flag, p, kinds) for p in (after, now, before)),
+                                                strict=True)  # fmt: skip
+
+        def wrapped(x):
+            return math.safe_atan2(jnp.sin(x), jnp.cos(x))
+
+        def turned(later, earlier, pair):  # world rotation vector from earlier to later (relative rotations)
+            return math.quat_rotate(pair.quat_a, math.quat_log(math.quat_multiply(later, math.quat_conjugate(earlier))))
+
+        hinge = wrapped(angle[0] - angle[1]) - wrapped(angle[1] - angle[2])
+        slide = (travel[0] - travel[1]) - (travel[1] - travel[2])
+        gimbal = wrapped(euler[0] - euler[1]) - wrapped(euler[1] - euler[2])
+        ball = turned(relative[0], relative[1], after) - turned(relative[1], relative[2], now)
+        first = jnp.where(flag.rotor_hinge, hinge, jnp.where(flag.rotor_slider, slide, 0.0))
+        single = jnp.stack([first, jnp.zeros_like(first), jnp.zeros_like(first)])
+        return jnp.where(flag.rotor_ball, ball, jnp.where(flag.rotor_euler, gimbal, single))
+
+    return jax.vmap(one)(model.joints, flag, *poses)
 
 
 def rows_in_use(structure: Structure) -> frozenset[str]:
@@ -134,6 +257,17 @@ def hinge_angle(joint: Joints, pair: BodyPair):
     return angle, axis
 
 
+def _euler_angles(joint: Joints, flag: JointFlags, pair: BodyPair, rows: frozenset[str]):
+    """(hinge angles (3,) rad, their gradients g_k (3, 3) w.r.t. a world rotation of b) of a
+    universal or gimbal joint at X* + dX, `math.euler_angles` (one kind traced when the model
+    has only one: `rows`)."""
+    quat_a, quat_b = pair.current_quats()
+    axes_a = math.quat_rotate(quat_a[None], joint.local_axes_a)
+    axes_b = math.quat_rotate(quat_b[None], joint.local_axes_b)
+    universal = flag.universal if {"universal", "gimbal"} <= rows else "universal" in rows
+    return math.euler_angles(axes_a, axes_b, universal)
+
+
 def slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
     """(travel d = (p_b - p_a) . axis, world axis, arm_a, arm_b) of a slider, SI (65)-(78).
 
@@ -167,6 +301,49 @@ def project(
     lam = list(multipliers)
     hard = lambda active, inequality=False: row.rigid(xi, alpha, active, inequality)  # noqa: E731
 
+    # Armature: MuJoCo's 1/2 armature qdot^2 on the joint coordinate q, in the step's variational
+    # form 1/2 armature (q(X* + dX) - q_rotor)^2 / h^2, q_rotor where the rotor's own inertia
+    # carries q (`rotor_offsets`): a spring row with k h^2 = armature (DBD 8.1) per degree of
+    # freedom. A torque actuator on that coordinate acts here (targets.torque): h^2 tau / armature
+    # shifts the rotor's target, so the torque moves bodies and rotor together. Angles are
+    # differenced modulo 2 pi.
+    if {"rotor_hinge", "rotor_slider", "rotor_ball", "rotor_euler"} & rows:
+        still = pair._replace(**{f: jnp.zeros_like(pair.dx_a) for f in ("dx_a", "dx_b", "dtheta_a", "dtheta_b")})
+
+        def rotor(k, change, active):  # error q(X* + dX) - q_rotor - h^2 tau / armature, and the rule
+            armature = jnp.where(joint.armature[k] > 0.0, joint.armature[k], 1.0)
+            error = change + target.rotor[k] - h**2 * target.torque[k] / armature
+            return error, row.spring(xi, active, joint.armature[k], 0.0)
+
+        def wrapped(angle, reference):
+            return math.safe_atan2(jnp.sin(angle - reference), jnp.cos(angle - reference))
+
+    if "rotor_hinge" in rows:
+        reference, _ = hinge_angle(joint, still)
+        angle, axis = hinge_angle(joint, pair)
+        error, rule = rotor(0, wrapped(angle, reference), flag.rotor_hinge)
+        pair, lam[ROTOR] = row.angular_row(pair, -axis, error, lam[ROTOR], rule, h)
+    if "rotor_slider" in rows:
+        reference, *_ = slider_travel(joint, flag, still)
+        travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
+        error, rule = rotor(0, travel - reference, flag.rotor_slider)
+        pair, lam[ROTOR] = row.positional_row(pair, -axis, arm_a, arm_b, error, lam[ROTOR], rule, h)
+    if "rotor_ball" in rows:
+        quat_a, quat_b = pair.current_quats()
+        predicted = relative_rotation(joint, still.quat_a, still.quat_b)
+        change = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(predicted))
+        error = math.quat_rotate(quat_a, math.quat_log(change)) + target.rotor  # (ball torques are refused)
+        pair, kappa = row.angular_spring(
+            pair, error, jnp.stack(lam[ROTOR : ROTOR + 3]), xi, joint.armature[0], 0.0, jnp.inf, flag.rotor_ball, h
+        )
+        lam[ROTOR : ROTOR + 3] = list(kappa)
+    if "rotor_euler" in rows:
+        reference, _ = _euler_angles(joint, flag, still, rows)
+        for k in range(3):
+            angles, directions = _euler_angles(joint, flag, pair, rows)
+            error, rule = rotor(k, wrapped(angles[k], reference[k]), flag.rotor_euler[k])
+            pair, lam[ROTOR + k] = row.angular_row(pair, -directions[k], error, lam[ROTOR + k], rule, h)
+
     # Drive (DBD 9): an implicit angular spring/damper toward the control target with the torque
     # limit (114). Hinge: the angle about the axle, wrapped to (-pi, pi]. Ball: the rotation
     # vector of E = X T^-1 (X the relative rotation from rest, T = exp(target)) in world axes.
@@ -190,6 +367,18 @@ def project(
             flag.ball_drive, h,
         )  # fmt: skip
         lam[DRIVE : DRIVE + 3] = list(kappa)
+    if "euler_drive" in rows:
+        # One spring row per hinge angle t_k toward its target, along g_k (DBD 9 per hinge, as
+        # MuJoCo's per-dof stiffness and damping). The universal's third row has g = 0: no step.
+        for k in range(3):
+            angles, directions = _euler_angles(joint, flag, pair, rows)
+            offset = angles[k] - target.drive[k]
+            error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
+            pair, lam[DRIVE + k] = row.angular_row(
+                pair, -directions[k], error, lam[DRIVE + k],
+                row.spring(xi, flag.euler_drive, joint.axis_stiffness[k] * h**2, joint.axis_damping[k] * h,
+                           torque_bound), h,
+            )  # fmt: skip
 
     # Motor: the relative speed along the axle or slide axis, force-limited (SI 2.3.6, 2.4.6).
     force_bound = joint.motor_max_force * h**2
@@ -228,6 +417,20 @@ def project(
         )  # fmt: skip
         lam[ROTATION_LOCK : ROTATION_LOCK + 3] = list(locked)
 
+    # Universal lock: hinge axis 1 (on a) and axis 2 (on b) stay perpendicular (DBD 6, (73)-(80),
+    # with the axle's 0 replaced by 90 degrees), c = m1_a . m2_b. A rotation of a by dtheta moves
+    # m1_a by dtheta x m1_a, so dc/dtheta_a = m1_a x m2_b = -dc/dtheta_b: a unit vector where the
+    # constraint holds (the axes are perpendicular there), so the row's direction never comes from
+    # normalising a vanishing vector. Not the angle form acos(c) - pi/2 along the normalised cross
+    # product: same row at the solution, but c is polynomial in the orientations.
+    if "universal" in rows:
+        quat_a, quat_b = pair.current_quats()
+        axis_1 = math.quat_rotate(quat_a, joint.local_axes_a[0])
+        axis_2 = math.quat_rotate(quat_b, joint.local_axes_b[1])
+        pair, lam[ROTATION_LOCK] = row.angular_row(
+            pair, math.cross(axis_1, axis_2), math.dot(axis_1, axis_2), lam[ROTATION_LOCK], hard(flag.universal)
+        )
+
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83).
     if "has_angle_limits" in rows:
@@ -247,6 +450,20 @@ def project(
         pair, lam[CONE] = row.angular_row(
             pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], hard(flag.has_cone, inequality=True)
         )
+
+    # Universal / gimbal hinge limits: t_k in [lower_k, upper_k] by two one-sided rows per hinge
+    # (SI (108), (115)), clamped as DBD (83); dc/dtheta_b = +-g_k: its impulse is the generalised
+    # force on hinge k alone.
+    # Both rows of a hinge read one evaluation of its angle: at most one of them acts (a lower row
+    # that pushes leaves the angle below the upper bound, where the upper row is clamped to 0).
+    if "euler_limited" in rows:
+        for k in range(3):
+            angles, directions = _euler_angles(joint, flag, pair, rows)
+            for index, sign in ((EULER_LOWER + k, -1.0), (EULER_UPPER + k, 1.0)):
+                error = (angles[k] - joint.axis_lower[k]) if sign < 0 else (joint.axis_upper[k] - angles[k])
+                pair, lam[index] = row.angular_row(
+                    pair, sign * directions[k], error, lam[index], hard(flag.euler_limited[k], inequality=True)
+                )
 
     # Slider travel limits, SI (65)-(78), on the travel d = (p_b - p_a) . axis.
     if "has_travel_limits" in rows:

@@ -206,18 +206,21 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
 
 
 def solve(
-    model: Model, predicted: State, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float
-) -> tuple[jnp.ndarray, jnp.ndarray, tuple[jnp.ndarray, ...]]:
+    model: Model, predicted: State, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float,
+    start: State | None = None,
+) -> tuple[jnp.ndarray, jnp.ndarray, tuple[jnp.ndarray, ...]]:  # fmt: skip
     """Displacement (N, 3) and rotation (N, 3) that satisfy the constraints from the prediction X*.
 
     control: (num_controls,) or None, the drive and motor targets of this step. contacts: this
-    substep's slots (collision.detect). h: substep (s). Also returns each contact group's
-    normal multipliers lambda_n (C, P) (the restitution pass reads which points pushed).
+    substep's slots (collision.detect). h: substep (s). start: the state the substep began from
+    (the joints' armature rows read the rotor's own motion from it; None: from the prediction).
+    Also returns each contact group's normal multipliers lambda_n (C, P) (the restitution pass
+    reads which points pushed).
     """
     structure, options = model.structure, model.options
     n = structure.num_bodies
     dtype = predicted.pos.dtype
-    all_families = constraints.families(model, control, contacts, h, dtype)
+    all_families = constraints.families(model, control, contacts, h, dtype, predicted=predicted, start=start)
     multipliers = [jnp.zeros((len(f.bodies), f.num_multipliers), dtype) for f in all_families]
     if any(len(f.bodies) for f in all_families):
         table = body_table(model, predicted, h)
