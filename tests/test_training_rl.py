@@ -46,7 +46,8 @@ def test_cli_help_runs(module):
         timeout=120,
     )
     assert completed.returncode == 0, completed.stderr
-    assert "--env" in completed.stdout and "--minutes" in completed.stdout and "dbdjax/RagdollStand-v0" in completed.stdout
+    for option in ("--env", "--minutes", "--out", "dbdjax/RagdollStand-v0"):
+        assert option in completed.stdout
 
 
 def test_cli_without_a_budget_is_refused():
@@ -111,10 +112,12 @@ def test_ppo_improves_the_return_on_ragdoll_stand(stand):
     result = ppo.train(stand, config, total_steps=PPO_STEPS, eval_episodes=32, evaluate_initial=True, progress=False)
     gain, error = paired_gain(result.initial_evaluation, result.evaluation)
     returns = [row["episode_return"] for row in result.history]
-    print(f"\nPPO {result.summary['env_steps']} steps in {result.summary['train_wall_s']:.0f} s: evaluation return "
-          f"{result.initial_evaluation['mean_return']:.2f} -> {result.evaluation['mean_return']:.2f} "
-          f"(gain {gain:.2f} +- {error:.2f}), lengths {result.initial_evaluation['mean_length']:.1f} -> "
-          f"{result.evaluation['mean_length']:.1f}; training returns {np.round(returns, 1).tolist()}")
+    print(
+        f"\nPPO {result.summary['env_steps']} steps in {result.summary['train_wall_s']:.0f} s: evaluation return "
+        f"{result.initial_evaluation['mean_return']:.2f} -> {result.evaluation['mean_return']:.2f} "
+        f"(gain {gain:.2f} +- {error:.2f}), lengths {result.initial_evaluation['mean_length']:.1f} -> "
+        f"{result.evaluation['mean_length']:.1f}; training returns {np.round(returns, 1).tolist()}"
+    )
     assert all(np.isfinite(row["policy_loss"]) and np.isfinite(row["value_loss"]) for row in result.history)
     assert gain > 3.0 * error
 
@@ -124,11 +127,13 @@ def test_apg_improves_the_return_on_ragdoll_stand(stand):
     config = apg.APGConfig(num_envs=8, horizon=8)
     result = apg.train(stand, config, updates=APG_UPDATES, eval_episodes=32, evaluate_initial=True, progress=False)
     gain, error = paired_gain(result.initial_evaluation, result.evaluation)
-    print(f"\nAPG {result.summary['updates']} updates in {result.summary['train_wall_s']:.0f} s "
-          f"({result.summary['skipped_updates']} skipped): evaluation return "
-          f"{result.initial_evaluation['mean_return']:.2f} -> {result.evaluation['mean_return']:.2f} "
-          f"(gain {gain:.2f} +- {error:.2f}), lengths {result.initial_evaluation['mean_length']:.1f} -> "
-          f"{result.evaluation['mean_length']:.1f}")
+    print(
+        f"\nAPG {result.summary['updates']} updates in {result.summary['train_wall_s']:.0f} s "
+        f"({result.summary['skipped_updates']} skipped): evaluation return "
+        f"{result.initial_evaluation['mean_return']:.2f} -> {result.evaluation['mean_return']:.2f} "
+        f"(gain {gain:.2f} +- {error:.2f}), lengths {result.initial_evaluation['mean_length']:.1f} -> "
+        f"{result.evaluation['mean_length']:.1f}"
+    )
     assert result.summary["skipped_updates"] < APG_UPDATES // 2
     assert gain > 3.0 * error
 
