@@ -175,11 +175,8 @@ def export_params(state: TrainState) -> dict:
 
 
 def act(task: DbdFuncEnv, params: dict):
-    """The policy of exported (or loaded) params: obs (..., obs_size) -> action (..., A)."""
-    stats = rl.Normaliser(jnp.asarray(params["obs_mean"]), jnp.asarray(params["obs_var"]),
-                          jnp.asarray(params["obs_count"]))  # fmt: skip
-    policy = jax.tree.map(jnp.asarray, params["policy"])
-    return lambda obs: rl.policy_action(task, policy, stats, obs)
+    """The deterministic policy of exported (or loaded) params: obs (..., obs_size) -> action (..., A)."""
+    return rl.act(task, params)
 
 
 def train(
@@ -218,7 +215,7 @@ def train(
         key=key,
     )
     evaluate = functools.partial(rl.evaluate, task, num_episodes=eval_episodes, seed=seed + 1)
-    initial_evaluation = evaluate(act(task, export_params(state))) if evaluate_initial else None
+    initial_evaluation = evaluate(export_params(state)) if evaluate_initial else None
     update = make_update(task, config, optimiser)
     history: list[dict] = []
     bar = _Progress(updates or 10**9, "apg", progress and updates is not None)
@@ -234,7 +231,7 @@ def train(
             row = {"iteration": index, "env_steps": index * config.num_envs * config.horizon, "wall_s": clock.wall(),
                    "cpu_s": clock.cpu(), **metrics}  # fmt: skip
             if eval_every and index % eval_every == 0:
-                evaluation = evaluate(act(task, export_params(state)))
+                evaluation = evaluate(export_params(state))
                 row.update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
                            eval_survival=evaluation["survival"])  # fmt: skip
             history.append(row)
@@ -249,7 +246,7 @@ def train(
         bar.close()
     train_wall, train_cpu = clock.wall(), clock.cpu()
     params = export_params(state)
-    evaluation = evaluate(act(task, params))
+    evaluation = evaluate(params)
     history[-1].update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
                        eval_survival=evaluation["survival"])  # fmt: skip
     summary = {

@@ -15,6 +15,7 @@ Observation normalisation: running mean and variance over every observation seen
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -101,32 +102,31 @@ def policy_action(task: DbdFuncEnv, policy: list[dict], stats: Normaliser, obs: 
 # ----------------------------------------------------------------------------- evaluation
 
 
-def evaluate(
-    task: DbdFuncEnv,
-    act: Callable[[jnp.ndarray], jnp.ndarray],
-    num_episodes: int = 16,
-    seed: int = 1,
-    max_steps: int | None = None,
-) -> dict[str, Any]:
-    """Run `num_episodes` episodes of `task` in one vmapped, jitted scan with actions `act(obs)`
-    (obs (num_episodes, obs_size) -> actions (num_episodes, action_size)).
+def act(task: DbdFuncEnv, params: dict) -> Callable[[jnp.ndarray], jnp.ndarray]:
+    """The deterministic policy of trained (or loaded) params {"policy": MLP, "obs_mean", "obs_var",
+    "obs_count", ...}: obs (..., obs_size) -> action (..., action_size)."""
+    return functools.partial(apply_policy, task, params)
 
-    An episode runs until it terminates or reaches `max_steps` (default task.max_episode_steps).
-    Returns numpy arrays "returns" and "lengths" (num_episodes,) and floats "mean_return",
-    "mean_length", "survival" (the fraction that reached max_steps without terminating).
-    """
-    steps = max_steps or task.max_episode_steps
-    if steps is None:
-        raise ValueError("evaluate: give max_steps for a task without max_episode_steps")
-    keys = jax.random.split(jax.random.PRNGKey(seed), num_episodes)
+
+def apply_policy(task: DbdFuncEnv, params: dict, obs: jnp.ndarray) -> jnp.ndarray:
+    """`policy_action` with the network and observation statistics taken from `params`."""
+    stats = Normaliser(jnp.asarray(params["obs_mean"]), jnp.asarray(params["obs_var"]),
+                       jnp.asarray(params["obs_count"]))  # fmt: skip
+    return policy_action(task, jax.tree.map(jnp.asarray, params["policy"]), stats, obs)
+
+
+@functools.lru_cache(maxsize=32)
+def _episodes(task: DbdFuncEnv, num_episodes: int, steps: int) -> Callable:
+    """The jitted evaluation run (params, keys) -> (returns, lengths, alive), one compilation per
+    task, batch and length (tasks hash by their settings) whatever the parameters' values."""
 
     @jax.jit
-    def run(keys):
+    def run(params, keys):
         state, obs, _ = jax.vmap(task.reset)(keys)
 
         def body(carry, _):
             state, obs, alive, total, length = carry
-            state, obs, reward, terminated, _, _ = jax.vmap(task.step)(state, act(obs))
+            state, obs, reward, terminated, _, _ = jax.vmap(task.step)(state, apply_policy(task, params, obs))
             total = total + jnp.where(alive, reward, 0.0)
             length = length + alive.astype(jnp.int32)
             return (state, obs, alive & ~terminated, total, length), None
@@ -136,7 +136,29 @@ def evaluate(
         (_, _, alive, total, length), _ = jax.lax.scan(body, start, None, length=steps)
         return total, length, alive
 
-    returns, lengths, alive = (np.asarray(x) for x in run(keys))
+    return run
+
+
+def evaluate(
+    task: DbdFuncEnv,
+    params: dict,
+    num_episodes: int = 16,
+    seed: int = 1,
+    max_steps: int | None = None,
+) -> dict[str, Any]:
+    """Run `num_episodes` episodes of `task` with the deterministic policy of `params` (`act`), in
+    one vmapped, jitted scan (compiled once per task, batch and length).
+
+    An episode runs until it terminates or reaches `max_steps` (default task.max_episode_steps).
+    The same seed gives the same episodes (start headings, pushes) for any policy. Returns numpy
+    arrays "returns" and "lengths" (num_episodes,) and floats "mean_return", "mean_length",
+    "survival" (the fraction that reached max_steps without terminating).
+    """
+    steps = max_steps or task.max_episode_steps
+    if steps is None:
+        raise ValueError("evaluate: give max_steps for a task without max_episode_steps")
+    keys = jax.random.split(jax.random.PRNGKey(seed), num_episodes)
+    returns, lengths, alive = (np.asarray(x) for x in _episodes(task, num_episodes, steps)(params, keys))
     return {
         "returns": returns,
         "lengths": lengths,
