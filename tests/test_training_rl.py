@@ -109,7 +109,7 @@ def test_checkpoint_round_trips_and_the_loaded_policy_acts_the_same(stand, tmp_p
 
 @pytest.mark.slow
 def test_ppo_improves_the_return_on_ragdoll_stand(stand):
-    config = ppo.PPOConfig(num_envs=32, unroll_length=16, num_minibatches=4, update_epochs=4)
+    config = ppo.PPOConfig(num_envs=32, unroll_length=16, num_minibatches=4, update_epochs=4, init_log_std=-3.0)
     result = ppo.train(stand, config, total_steps=PPO_STEPS, eval_episodes=32, evaluate_initial=True, progress=False)
     gain, error = paired_gain(result.initial_evaluation, result.evaluation)
     returns = [row["episode_return"] for row in result.history]

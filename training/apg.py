@@ -302,7 +302,7 @@ def main(argv: list[str] | None = None) -> Result:
     parser.add_argument("--eval-episodes", type=int, default=16)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="apg_output", help="output folder")
-    parser.add_argument("--name", default=None, help="file stem (default apg_<env name>)")
+    parser.add_argument("--name", default=None, help="file stem (default apg_<env name in snake case>)")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
@@ -315,7 +315,7 @@ def main(argv: list[str] | None = None) -> Result:
     result = train(task, config, updates=args.updates, time_budget_s=budget, seed=args.seed,
                    eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
                    progress=not args.no_progress)  # fmt: skip
-    name = args.name or "apg_" + args.env.split("/")[-1].split("-")[0].lower()
+    name = args.name or "apg_" + rl.env_stem(args.env)
     result.summary.update(env=args.env, title=f"APG on {args.env}")
     paths = rl.save_result(args.out, name, result.params, result.history, result.summary, plot=not args.no_plot)
     s, e = result.summary, result.evaluation

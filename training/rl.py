@@ -20,6 +20,7 @@ import json
 import math
 import os
 import platform
+import re
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -192,6 +193,12 @@ def _load() -> list[float] | None:
         return None
 
 
+def env_stem(env_id: str) -> str:
+    """ "dbdjax/RagdollStand-v0" -> "ragdoll_stand", "dbdjax/IKChainReach-v0" -> "ik_chain_reach"."""
+    name = env_id.split("/")[-1].split("-")[0]
+    return re.sub(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", "_", name).lower()
+
+
 def machine() -> dict[str, Any]:
     """What ran it: platform, CPU count, JAX backend and devices, load average now, peak RSS (MB)."""
     return {
@@ -243,6 +250,9 @@ def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
         values = np.array([row.get(key, np.nan) for row in history], float)
         ax.plot(steps, values, color="tab:blue", label="training episodes (stochastic)")
         evals = [(row["env_steps"], row[eval_key]) for row in history if eval_key in row]
+        initial = summary.get("initial_evaluation")
+        if initial:  # the untrained policy, at step 0
+            evals.insert(0, (0, initial[eval_key.removeprefix("eval_")]))
         if evals:
             ax.plot(*np.array(evals).T, "o-", color="tab:red", label="evaluation (deterministic)")
         if key == "episode_length" and summary.get("max_episode_steps"):
