@@ -24,14 +24,18 @@ observation does not show, is not mistaken for a fall. Ended envs reset in the s
 next observation is the new episode's first).
 
 Why this trainer and not Brax's `ppo.train` through `envs/brax_adapter.py`: both were run on
-RagdollStand-v0 on this repository's shared 2-core CPU with the same env, batch (32 envs, the
-home-action offset added to Brax's actions by a wrapper) and similar PPO settings. Physics
-dominates both (about 2.7 ms of CPU per env step: two physics steps of the 15-body doll), so
-their env steps per second were close; this one compiled faster and spends nothing on Brax's
-separate evaluation rollouts (128 x 300 steps per evaluation by default) or its per-step
-metric wrappers, and it resets an ended episode from a fresh random start where Brax's
-AutoResetWrapper replays each slot's first start. The measured numbers are in
-benchmarks/results/ppo_ragdoll_stand.json ("brax_comparison").
+RagdollStand-v0 on this repository's shared 2-core CPU (load average 12-18 from other jobs), with
+the home-pose offset added to Brax's actions by a wrapper (benchmarks/brax_ppo_trial.py,
+benchmarks/results/brax_ppo_trial.json). Physics dominates both: Brax's trainer spent 3.8 ms of
+CPU per env step (32 envs, steady state), this one 3.4 ms (64 envs, updates included); Brax's
+first update came after 85 s of CPU (compilation), this one's after 124 s (compilation plus an
+evaluation of the untrained policy). So neither is decisively faster here; this one is kept
+because it is slightly cheaper per step, bootstraps at the time limit (Brax's
+`bootstrap_on_timeout` needs a `time_out` entry the adapter does not provide), resets an ended
+episode from a fresh random start (Brax's AutoResetWrapper replays each slot's first start),
+spends nothing on Brax's separate evaluation rollouts, and is one file whose every step can be
+read. In the trial's 15,360 steps Brax's training episodes stayed at 23-24 steps; this trainer's
+were at 29 steps after a similar number (ppo_ragdoll_stand.json).
 """
 
 from __future__ import annotations
