@@ -248,7 +248,8 @@ def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
     for index, (key, eval_key, label) in enumerate(panels):
         ax = figure.add_subplot(1, 2, index + 1)
         values = np.array([row.get(key, np.nan) for row in history], float)
-        ax.plot(steps, values, color="tab:blue", label="training episodes (stochastic)")
+        noise = " (stochastic)" if summary.get("algorithm") == "ppo" else ""
+        ax.plot(steps, values, color="tab:blue", label=f"training episodes{noise}")
         evals = [(row["env_steps"], row[eval_key]) for row in history if eval_key in row]
         initial = summary.get("initial_evaluation")
         if initial:  # the untrained policy, at step 0
