@@ -9,8 +9,10 @@
 `BraxEnv.reset(rng)` and `BraxEnv.step(state, action)` are the task's pure `reset`/`step`;
 the Brax `State` carries the task's `EnvState` as `pipeline_state`, the observation, the reward
 (float32), `done` (1.0 when the task terminates: a fall, a non-finite action or physics state)
-and, in `metrics`, every entry of the Gymnasium info as float32 (reward terms, flags,
-"is_success", ...), which Brax's EpisodeWrapper sums per episode. The task is built with
+and, in `metrics`, every scalar entry of the Gymnasium info as float32 (reward terms, flags,
+"is_success", ...), which Brax's EpisodeWrapper sums per episode (vector entries, such as the
+ragdoll's "push", are left out: Brax's wrappers keep one number per env and metric); metric
+keys that Brax's wrappers add (EvalWrapper's "reward") are kept from step to step. The task is built with
 `max_episode_steps=None`: Brax's own EpisodeWrapper (`episode_length`) truncates and sets
 info["truncation"], which its trainers use to bootstrap at time limits.
 
@@ -60,7 +62,9 @@ class BraxEnv(Env):
             obs=obs,
             reward=jnp.asarray(reward, jnp.float32),
             done=jnp.asarray(terminated, jnp.float32),
-            metrics=_metrics(info),
+            # Keep metrics that wrappers added (Brax's EvalWrapper puts "reward" there at reset and
+            # its EpisodeWrapper's action-repeat scan needs the same keys in and out).
+            metrics={**state.metrics, **_metrics(info)},
         )
 
     @property
@@ -82,7 +86,9 @@ class BraxEnv(Env):
 
 
 def _metrics(info: dict[str, Any]) -> dict[str, jnp.ndarray]:
-    return {name: jnp.asarray(value, jnp.float32) for name, value in info.items()}
+    # Scalars only: Brax's EpisodeWrapper and EvalWrapper keep one number per env per metric
+    # (a (3,) entry such as the ragdoll's "push" fails their broadcast against (num_envs,)).
+    return {name: jnp.asarray(value, jnp.float32) for name, value in info.items() if jnp.ndim(value) == 0}
 
 
 def make_brax_env(env_id: str, **kwargs) -> BraxEnv:

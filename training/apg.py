@@ -1,0 +1,333 @@
+"""Analytic policy gradients (APG): a deterministic policy network trained by back-propagating the
+return through the simulator, as Brax's `apg` does.
+
+    from dbdjax.envs import RagdollStand
+    from dbdjax.training import apg
+    task = RagdollStand(max_episode_steps=300, push_interval=2.0)
+    result = apg.train(task, apg.APGConfig(), updates=200)     # or time_budget_s=600
+
+    python -m dbdjax.training.apg --env dbdjax/RagdollStand-v0 --minutes 10 --out runs/apg
+
+`num_envs` episodes run side by side (vmap) and carry on from update to update. Each update
+unrolls `horizon` env steps from where they are, with actions from the policy, and takes the
+gradient of the mean reward per step with respect to the policy parameters through every
+`dbd.step` (the policy's actions change the drive targets, which change the next state, which
+changes the next observation and action: the whole chain is differentiated). Truncation: the
+state an unroll starts from is `stop_gradient`ed, so a gradient spans at most `horizon` steps
+however long the episode (the variance and the size of gradients through contact dynamics grow
+with the length of the chain). An episode that ends (a fall, the time limit) is reset inside
+the unroll; nothing flows across a reset. Then optax: clip to global norm `max_grad_norm`, Adam.
+
+Memory: every env step is wrapped in `jax.checkpoint` (`remat=True`), so reverse mode stores
+one state per step and recomputes the solver's sweeps of one step at a time in the backward pass.
+
+Non-finite gradients: a long chain through stiff contacts can overflow float32. An update whose
+gradient has a NaN or inf is not applied (the parameters and Adam's moments stay as they were)
+and counted in the history ("skipped"); every other update is clipped. Nothing is replaced
+inside the gradient itself.
+
+The policy is `training.rl`'s (build pose + MLP of the normalised observation); the observation
+statistics are updated from each unroll's observations (outside the gradient).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from dbdjax.envs.core import DbdFuncEnv
+
+from . import rl
+from .trajopt import _Progress
+
+
+@dataclasses.dataclass(frozen=True)
+class APGConfig:
+    """APG hyper-parameters (defaults: the RagdollStand-v0 run of benchmarks/results).
+
+    num_envs: episodes run side by side. horizon: env steps per update (the gradient's length).
+    learning_rate: Adam's (cosine-decayed to 10% when the number of updates is known).
+    max_grad_norm: global-norm clip. hidden: MLP widths. remat: `jax.checkpoint` per env step.
+    normalise_observations: running mean/std of observations. init_scale: scale of the policy's
+    last layer at initialisation (small: the policy starts at the build pose).
+    """
+
+    num_envs: int = 16
+    horizon: int = 16
+    learning_rate: float = 3e-4
+    max_grad_norm: float = 1.0
+    hidden: tuple[int, ...] = (64, 64)
+    remat: bool = True
+    normalise_observations: bool = True
+    init_scale: float = 0.01
+
+
+class TrainState(NamedTuple):
+    policy: list
+    opt_state: Any
+    stats: rl.Normaliser
+    env_state: Any
+    obs: jnp.ndarray
+    episode_return: jnp.ndarray
+    episode_length: jnp.ndarray
+    key: jnp.ndarray
+
+
+@dataclasses.dataclass
+class Result:
+    """What `train` returns: params {"policy", "obs_mean", "obs_var", "obs_count"} (numpy; `act`
+    makes a policy of them), history (one dict per update), evaluation (the final deterministic
+    `rl.evaluate`), initial_evaluation, summary (JSON-serialisable settings and timings)."""
+
+    params: dict
+    history: list[dict]
+    evaluation: dict
+    initial_evaluation: dict | None
+    summary: dict
+
+
+def make_update(task: DbdFuncEnv, config: APGConfig, optimiser: optax.GradientTransformation):
+    """The jitted update: TrainState -> (TrainState, metrics dict of scalars)."""
+    step_envs = jax.vmap(task.step)
+    reset_envs = jax.vmap(task.reset)
+
+    def env_step(policy, stats, carry, reset_key):
+        env_state, obs, episode_return, episode_length = carry
+        action = rl.policy_action(task, policy, stats, obs)
+        env_state, next_obs, reward, terminated, truncated, _ = step_envs(env_state, action)
+        done = terminated | truncated
+        fresh_state, fresh_obs, _ = reset_envs(jax.random.split(reset_key, config.num_envs))
+        env_state = jax.tree.map(
+            lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old),
+            fresh_state,
+            env_state,
+        )
+        obs = jnp.where(done[:, None], fresh_obs, next_obs)
+        episode_return = episode_return + jax.lax.stop_gradient(reward)
+        episode_length = episode_length + 1
+        ended = {
+            "count": jnp.sum(done),
+            "return": jnp.sum(jnp.where(done, episode_return, 0.0)),
+            "length": jnp.sum(jnp.where(done, episode_length, 0)),
+            "full": jnp.sum(truncated),
+        }
+        carry = (env_state, obs, jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length))
+        return carry, (reward, jax.lax.stop_gradient(obs), ended)
+
+    if config.remat:
+        env_step = jax.checkpoint(env_step)
+
+    def loss_function(policy, state: TrainState, keys):
+        start = jax.lax.stop_gradient((state.env_state, state.obs, state.episode_return, state.episode_length))
+
+        def body(carry, key):
+            return env_step(policy, state.stats, carry, key)
+
+        carry, (rewards, observations, ended) = jax.lax.scan(body, start, keys)
+        return -jnp.mean(rewards), (carry, observations, ended)
+
+    @jax.jit
+    def update(state: TrainState):
+        key, unroll_key = jax.random.split(state.key)
+        keys = jax.random.split(unroll_key, config.horizon)
+        (loss, (carry, observations, ended)), grads = jax.value_and_grad(loss_function, has_aux=True)(
+            state.policy, state, keys
+        )
+        grad_norm = optax.global_norm(grads)
+        finite = jnp.isfinite(grad_norm)
+        updates, opt_state = optimiser.update(grads, state.opt_state, state.policy)
+        policy = optax.apply_updates(state.policy, updates)
+        # A non-finite gradient: keep the old parameters and optimiser state (counted as skipped).
+        policy, opt_state = jax.tree.map(
+            lambda new, old: jnp.where(finite, new, old), (policy, opt_state), (state.policy, state.opt_state)
+        )
+        stats = rl.update_normaliser(state.stats, observations) if config.normalise_observations else state.stats
+        env_state, obs, episode_return, episode_length = carry
+        ended = jax.tree.map(jnp.sum, ended)
+        count = jnp.maximum(ended["count"], 1)
+        metrics = {
+            "loss": loss,
+            "reward_per_step": -loss,
+            "grad_norm": grad_norm,
+            "skipped": (~finite).astype(jnp.int32),
+            "episodes": ended["count"],
+            "episode_return": jnp.where(ended["count"] > 0, ended["return"] / count, jnp.nan),
+            "episode_length": jnp.where(ended["count"] > 0, ended["length"] / count, jnp.nan),
+            "full_episodes": jnp.where(ended["count"] > 0, ended["full"] / count, jnp.nan),
+        }
+        new_state = TrainState(policy, opt_state, stats, env_state, obs, episode_return, episode_length, key)
+        return new_state, metrics
+
+    return update
+
+
+def export_params(state: TrainState) -> dict:
+    """The parameters a checkpoint holds (numpy): the policy MLP and the observation statistics."""
+    return {"policy": jax.tree.map(np.asarray, state.policy), "obs_mean": np.asarray(state.stats.mean),
+            "obs_var": np.asarray(state.stats.var), "obs_count": np.asarray(state.stats.count)}  # fmt: skip
+
+
+def act(task: DbdFuncEnv, params: dict):
+    """The deterministic policy of exported (or loaded) params: obs (..., obs_size) -> action (..., A)."""
+    return rl.act(task, params)
+
+
+def train(
+    task: DbdFuncEnv,
+    config: APGConfig = APGConfig(),
+    updates: int | None = None,
+    time_budget_s: float | None = None,
+    seed: int = 0,
+    eval_every: int = 0,
+    eval_episodes: int = 16,
+    evaluate_initial: bool = False,
+    progress: bool = True,
+) -> Result:
+    """Train a policy on `task` by analytic policy gradients for `updates` updates or until
+    `time_budget_s` wall seconds (compilation included) have passed, whichever comes first (at
+    least one must be given). eval_every: a deterministic evaluation of `eval_episodes` episodes
+    every that many updates (0: only at the end). Returns a `Result`."""
+    if updates is None and time_budget_s is None:
+        raise ValueError("train: give updates or time_budget_s")
+    if task.max_episode_steps is None:
+        raise ValueError("train: the task needs max_episode_steps")
+    rate = config.learning_rate if updates is None else optax.cosine_decay_schedule(config.learning_rate, updates, 0.1)
+    optimiser = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate))
+    clock = rl.Clock()
+    key, init_key, env_key = jax.random.split(jax.random.PRNGKey(seed), 3)
+    policy = rl.init_mlp(init_key, (task.observation_size, *config.hidden, task.action_size), config.init_scale)
+    env_state, obs, _ = jax.jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
+    state = TrainState(
+        policy=policy,
+        opt_state=optimiser.init(policy),
+        stats=rl.init_normaliser(task.observation_size),
+        env_state=env_state,
+        obs=obs,
+        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
+        episode_length=jnp.zeros((config.num_envs,), jnp.int32),
+        key=key,
+    )
+    evaluate = functools.partial(rl.evaluate, task, num_episodes=eval_episodes, seed=seed + 1)
+    initial_evaluation = evaluate(export_params(state)) if evaluate_initial else None
+    update = make_update(task, config, optimiser)
+    history: list[dict] = []
+    bar = _Progress(updates or 10**9, "apg", progress and updates is not None)
+    compile_s = None
+    index = 0
+    try:
+        while True:
+            state, metrics = update(state)
+            metrics = {name: float(value) for name, value in metrics.items()}
+            if compile_s is None:
+                compile_s = clock.wall()
+            index += 1
+            row = {"iteration": index, "env_steps": index * config.num_envs * config.horizon, "wall_s": clock.wall(),
+                   "cpu_s": clock.cpu(), **metrics}  # fmt: skip
+            if eval_every and index % eval_every == 0:
+                evaluation = evaluate(export_params(state))
+                row.update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
+                           eval_survival=evaluation["survival"])  # fmt: skip
+            history.append(row)
+            bar.update(metrics["reward_per_step"])
+            if progress and updates is None and (index == 1 or index % 10 == 0):
+                print(_line(row), flush=True)
+            if updates is not None and index >= updates:
+                break
+            if time_budget_s is not None and clock.wall() >= time_budget_s:
+                break
+    finally:
+        bar.close()
+    train_wall, train_cpu = clock.wall(), clock.cpu()
+    params = export_params(state)
+    evaluation = evaluate(params)
+    history[-1].update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
+                       eval_survival=evaluation["survival"])  # fmt: skip
+    summary = {
+        "algorithm": "apg",
+        "config": dataclasses.asdict(config),
+        "seed": seed,
+        "updates": index,
+        "skipped_updates": int(sum(row["skipped"] for row in history)),
+        "env_steps": index * config.num_envs * config.horizon,
+        "compile_wall_s": compile_s,
+        "train_wall_s": train_wall,
+        "train_cpu_s": train_cpu,
+        "env_steps_per_s": index * config.num_envs * config.horizon / train_wall,
+        "load_average_at_start": clock.load_at_start,
+        "max_episode_steps": task.max_episode_steps,
+        "evaluation": {k: v for k, v in evaluation.items() if not isinstance(v, np.ndarray)},
+        "evaluation_lengths": evaluation["lengths"].tolist(),
+        "initial_evaluation": None
+        if initial_evaluation is None
+        else {k: v for k, v in initial_evaluation.items() if not isinstance(v, np.ndarray)},
+        "machine": rl.machine(),
+    }
+    return Result(params, history, evaluation, initial_evaluation, summary)
+
+
+def _line(row: dict) -> str:
+    return (f"update {row['iteration']:5d} steps {row['env_steps']:8d} wall {row['wall_s']:7.1f}s "
+            f"reward/step {row['reward_per_step']:7.4f} episode return {row['episode_return']:7.2f} "
+            f"length {row['episode_length']:6.1f} |grad| {row['grad_norm']:.3g}")  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> Result:
+    from dbdjax.envs import TASKS
+
+    defaults = APGConfig()
+    parser = argparse.ArgumentParser(
+        prog="python -m dbdjax.training.apg",
+        description="Train a policy on a dbdjax env by analytic policy gradients (the return differentiated "
+        "through the simulator over truncated unrolls). Writes <out>/<name>.npz (checkpoint, no pickle), "
+        "<name>.json (settings, timings, per-update metrics) and <name>.png (return and episode-length curves).",
+    )
+    parser.add_argument("--env", default="dbdjax/RagdollStand-v0", choices=sorted(TASKS))
+    parser.add_argument("--updates", type=int, default=None, help="gradient updates (default: until --minutes)")
+    parser.add_argument("--minutes", type=float, default=None, help="wall-clock budget, compile included")
+    parser.add_argument("--episode-steps", type=int, default=None, help="time limit (default: the env's)")
+    parser.add_argument("--num-envs", type=int, default=defaults.num_envs)
+    parser.add_argument("--horizon", type=int, default=defaults.horizon, help="env steps per gradient (truncation)")
+    parser.add_argument("--lr", type=float, default=defaults.learning_rate)
+    parser.add_argument("--clip", type=float, default=defaults.max_grad_norm, help="global gradient-norm clip")
+    parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
+    parser.add_argument("--no-remat", action="store_true", help="no jax.checkpoint per env step")
+    parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N updates (0: at the end)")
+    parser.add_argument("--eval-episodes", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="apg_output", help="output folder")
+    parser.add_argument("--name", default=None, help="file stem (default apg_<env name in snake case>)")
+    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-plot", action="store_true")
+    args = parser.parse_args(argv)
+    if args.updates is None and args.minutes is None:
+        parser.error("give --updates or --minutes")
+    task = TASKS[args.env](max_episode_steps=args.episode_steps or TASKS[args.env].default_max_episode_steps)
+    config = APGConfig(num_envs=args.num_envs, horizon=args.horizon, learning_rate=args.lr, max_grad_norm=args.clip,
+                       hidden=tuple(args.hidden), remat=not args.no_remat)  # fmt: skip
+    budget = None if args.minutes is None else 60.0 * args.minutes
+    result = train(task, config, updates=args.updates, time_budget_s=budget, seed=args.seed,
+                   eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
+                   progress=not args.no_progress)  # fmt: skip
+    name = args.name or "apg_" + rl.env_stem(args.env)
+    result.summary.update(env=args.env, title=f"APG on {args.env}")
+    paths = rl.save_result(args.out, name, result.params, result.history, result.summary, plot=not args.no_plot)
+    s, e = result.summary, result.evaluation
+    print(
+        f"apg on {args.env}: {s['updates']} updates, {s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall "
+        f"({s['train_cpu_s']:.0f} s CPU, compile {s['compile_wall_s']:.0f} s, {s['skipped_updates']} skipped); "
+        f"evaluation: return {e['mean_return']:.1f}, length {e['mean_length']:.0f}, survival {e['survival']:.2f}"
+    )
+    for kind, path in paths.items():
+        print(f"  {kind}: {path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,470 @@
+"""PPO on the JAX-native vector env: `num_envs` copies of a `DbdFuncEnv` under `jax.vmap`, every
+training iteration (rollout, GAE, all epochs and minibatches of updates) one jitted function.
+
+    from dbdjax.envs import RagdollStand
+    from dbdjax.training import ppo
+    task = RagdollStand(max_episode_steps=300, push_interval=2.0)
+    result = ppo.train(task, ppo.PPOConfig(), total_steps=200_000)      # or time_budget_s=1800
+    result.params, result.history, result.evaluation                       # params: policy, value, log_std, obs stats
+
+    python -m dbdjax.training.ppo --env dbdjax/RagdollStand-v0 --minutes 30 --out runs/ppo
+
+Written in the style of PureJaxRL (one file, plain JAX and optax, no framework): an iteration
+collects `unroll_length` steps from each of `num_envs` envs with a Gaussian policy (state-free
+log std), computes generalised advantage estimates (Schulman et al. 2016), and runs
+`update_epochs` passes of `num_minibatches` minibatches of the clipped surrogate objective
+(Schulman et al. 2017) with a value loss and an entropy bonus; Adam after global-norm clipping.
+The Python loop around the jitted iteration only logs, draws the progress bar and checks the
+time budget. The policy is `training.rl`'s: the build pose ("home" action) plus an MLP of the
+normalised observation; the value network is a separate MLP of the same observation.
+
+Episode ends: a termination (a fall) has value 0 after it; a truncation (the time limit) is
+bootstrapped with the value of the episode's last observation, so the time limit, which the
+observation does not show, is not mistaken for a fall. Ended envs reset in the same step (their
+next observation is the new episode's first).
+
+Why this trainer and not Brax's `ppo.train` through `envs/brax_adapter.py`: both were run on
+RagdollStand-v0 on this repository's shared 2-core CPU (load average 12-18 from other jobs), with
+the home-pose offset added to Brax's actions by a wrapper (benchmarks/brax_ppo_trial.py,
+benchmarks/results/brax_ppo_trial.json). Physics dominates both: Brax's trainer spent 3.8 ms of
+CPU per env step (32 envs, steady state), this one 3.4 ms (64 envs, updates included); Brax's
+first update came after 85 s of CPU (compilation), this one's after 124 s (compilation plus an
+evaluation of the untrained policy). So neither is decisively faster here; this one is kept
+because it is slightly cheaper per step, bootstraps at the time limit (Brax's
+`bootstrap_on_timeout` needs a `time_out` entry the adapter does not provide), resets an ended
+episode from a fresh random start (Brax's AutoResetWrapper replays each slot's first start),
+spends nothing on Brax's separate evaluation rollouts, and is one file whose every step can be
+read. In the trial's 15,360 steps Brax's training episodes stayed at 23-24 steps; this trainer's
+were at 29 steps after a similar number (ppo_ragdoll_stand.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import math
+import sys
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from dbdjax.envs.core import DbdFuncEnv
+
+from . import rl
+from .trajopt import _Progress
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyper-parameters (defaults: the RagdollStand-v0 run of benchmarks/results).
+
+    num_envs: envs stepped together (vmap). unroll_length: steps per env per iteration; an
+    iteration has num_envs x unroll_length transitions, split into num_minibatches minibatches
+    and passed over update_epochs times. gamma: discount; gae_lambda: GAE's lambda.
+    clip_epsilon: the ratio clip. value_coef, entropy_coef: loss weights. learning_rate: Adam's
+    (linearly decayed to 10% over the run when total_steps is known); max_grad_norm: global-norm
+    clip. hidden: widths of both MLPs. init_log_std: log std of the initial policy (per action
+    entry, in action units where [-1, 1] is the whole range). normalise_observations: running
+    mean/std normalisation. reward_scale: multiplies rewards before the value targets.
+    """
+
+    num_envs: int = 64
+    unroll_length: int = 32
+    num_minibatches: int = 8
+    update_epochs: int = 4
+    gamma: float = 0.97
+    gae_lambda: float = 0.95
+    clip_epsilon: float = 0.2
+    value_coef: float = 0.5
+    entropy_coef: float = 0.0
+    learning_rate: float = 3e-4
+    max_grad_norm: float = 0.5
+    hidden: tuple[int, ...] = (128, 128)
+    init_log_std: float = -1.6
+    normalise_observations: bool = True
+    reward_scale: float = 1.0
+
+    @property
+    def batch_size(self) -> int:
+        """Transitions per iteration."""
+        return self.num_envs * self.unroll_length
+
+
+class TrainState(NamedTuple):
+    """Everything that changes during training (a pytree; `train` returns it in Result.params form)."""
+
+    params: dict  # {"policy": MLP, "value": MLP, "log_std": (A,)}
+    opt_state: Any
+    stats: rl.Normaliser
+    env_state: Any  # the vmapped EnvState
+    obs: jnp.ndarray  # (num_envs, obs_size)
+    episode_return: jnp.ndarray  # (num_envs,) return so far of the running episodes
+    episode_length: jnp.ndarray  # (num_envs,) int32
+    key: jnp.ndarray
+
+
+class Transition(NamedTuple):
+    obs: jnp.ndarray
+    action: jnp.ndarray
+    log_prob: jnp.ndarray
+    value: jnp.ndarray
+    reward: jnp.ndarray
+    next_obs: jnp.ndarray  # the observation after the action (the ended episode's last one at a reset)
+    terminated: jnp.ndarray
+    truncated: jnp.ndarray
+
+
+@dataclasses.dataclass
+class Result:
+    """What `train` returns.
+
+    params: {"policy", "value", "log_std", "obs_mean", "obs_var", "obs_count"} as numpy arrays
+    (what the checkpoint holds; `act` makes a policy of it). history: one dict per iteration
+    (env_steps, wall_s, cpu_s, episode_return/length of the training episodes that ended in it,
+    full_episodes (the fraction of them that reached the time limit), losses, approx_kl, std;
+    eval_* entries where an evaluation ran). evaluation: the final deterministic evaluation
+    (`rl.evaluate`). summary: settings, timings, machine (JSON-serialisable).
+    """
+
+    params: dict
+    history: list[dict]
+    evaluation: dict
+    initial_evaluation: dict | None
+    summary: dict
+
+
+def init_params(task: DbdFuncEnv, config: PPOConfig, key: jax.Array) -> dict:
+    """{"policy": MLP obs -> residual action (last layer x0.01), "value": MLP obs -> (), "log_std": (A,)}."""
+    policy_key, value_key = jax.random.split(key)
+    sizes = (task.observation_size, *config.hidden)
+    return {
+        "policy": rl.init_mlp(policy_key, (*sizes, task.action_size), last_scale=0.01),
+        "value": rl.init_mlp(value_key, (*sizes, 1), last_scale=1.0),
+        "log_std": jnp.full((task.action_size,), config.init_log_std, jnp.float32),
+    }
+
+
+def _gaussian_log_prob(mean, log_std, x):
+    return jnp.sum(-0.5 * ((x - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * math.log(2.0 * math.pi), axis=-1)
+
+
+def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTransformation):
+    """The jitted training iteration: TrainState -> (TrainState, metrics dict of scalars)."""
+    if config.batch_size % config.num_minibatches:
+        raise ValueError(f"num_envs x unroll_length ({config.batch_size}) must divide into {config.num_minibatches}")
+    step_envs = jax.vmap(task.step)
+    reset_envs = jax.vmap(task.reset)
+
+    def networks(params, stats, obs):
+        x = rl.normalise(stats, obs)
+        mean = rl.home_action(task) + rl.apply_mlp(params["policy"], x)
+        value = rl.apply_mlp(params["value"], x)[..., 0]
+        return mean, value
+
+    def env_step(carry: TrainState, _):
+        params, stats = carry.params, carry.stats
+        key, action_key, reset_key = jax.random.split(carry.key, 3)
+        mean, value = networks(params, stats, carry.obs)
+        action = mean + jnp.exp(params["log_std"]) * jax.random.normal(action_key, mean.shape)
+        log_prob = _gaussian_log_prob(mean, params["log_std"], action)
+        env_state, next_obs, reward, terminated, truncated, _ = step_envs(carry.env_state, action)
+        reward = reward.astype(jnp.float32)
+        done = terminated | truncated
+        # Reset the ended envs in the same step, from fresh keys.
+        fresh_state, fresh_obs, _ = reset_envs(jax.random.split(reset_key, config.num_envs))
+        env_state = jax.tree.map(
+            lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old),
+            fresh_state,
+            env_state,
+        )
+        obs = jnp.where(done[:, None], fresh_obs, next_obs)
+        episode_return = carry.episode_return + reward
+        episode_length = carry.episode_length + 1
+        ended = {
+            "count": jnp.sum(done),
+            "return": jnp.sum(jnp.where(done, episode_return, 0.0)),
+            "length": jnp.sum(jnp.where(done, episode_length, 0)),
+            "full": jnp.sum(truncated),
+        }
+        new_carry = carry._replace(
+            env_state=env_state,
+            obs=obs,
+            episode_return=jnp.where(done, 0.0, episode_return),
+            episode_length=jnp.where(done, 0, episode_length),
+            key=key,
+        )
+        return new_carry, (
+            Transition(carry.obs, action, log_prob, value, reward, next_obs, terminated, truncated),
+            ended,
+        )
+
+    def rollout(state: TrainState):
+        return jax.lax.scan(env_step, state, None, length=config.unroll_length)
+
+    def advantages(params, stats, batch: Transition):
+        """GAE over the unroll (time-major (T, N)); value targets = advantages + values."""
+        _, next_value = networks(params, stats, batch.next_obs)
+        # Termination: no value after it; truncation: bootstrap from the last observation (next_value).
+        delta = config.reward_scale * batch.reward + config.gamma * next_value * (1.0 - batch.terminated) - batch.value
+        not_done = 1.0 - (batch.terminated | batch.truncated)
+
+        def backwards(gae, x):
+            delta_t, not_done_t = x
+            gae = delta_t + config.gamma * config.gae_lambda * not_done_t * gae
+            return gae, gae
+
+        _, advantage = jax.lax.scan(backwards, jnp.zeros_like(delta[0]), (delta, not_done), reverse=True)
+        return advantage, advantage + batch.value
+
+    def loss_function(params, stats, minibatch, advantage, target):
+        mean, value = networks(params, stats, minibatch.obs)
+        log_prob = _gaussian_log_prob(mean, params["log_std"], minibatch.action)
+        ratio = jnp.exp(log_prob - minibatch.log_prob)
+        normalised = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+        surrogate = jnp.minimum(
+            ratio * normalised, jnp.clip(ratio, 1.0 - config.clip_epsilon, 1.0 + config.clip_epsilon) * normalised
+        )
+        policy_loss = -jnp.mean(surrogate)
+        value_loss = 0.5 * jnp.mean((value - target) ** 2)
+        entropy = jnp.sum(params["log_std"] + 0.5 * math.log(2.0 * math.pi * math.e))
+        total = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
+        approx_kl = jnp.mean((ratio - 1.0) - jnp.log(ratio))
+        return total, {"policy_loss": policy_loss, "value_loss": value_loss, "approx_kl": approx_kl}
+
+    def update_minibatch(carry, minibatch):
+        params, opt_state, stats = carry
+        batch, advantage, target = minibatch
+        grads, info = jax.grad(loss_function, has_aux=True)(params, stats, batch, advantage, target)
+        updates, opt_state = optimiser.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        info["grad_norm"] = optax.global_norm(grads)
+        return (params, opt_state, stats), info
+
+    def update_epoch(carry, key):
+        params, opt_state, stats, data = carry
+        permutation = jax.random.permutation(key, config.batch_size)
+        shuffled = jax.tree.map(lambda x: x[permutation].reshape((config.num_minibatches, -1) + x.shape[1:]), data)
+        (params, opt_state, stats), info = jax.lax.scan(update_minibatch, (params, opt_state, stats), shuffled)
+        return (params, opt_state, stats, data), info
+
+    @jax.jit
+    def iteration(state: TrainState):
+        state, (batch, ended) = rollout(state)
+        advantage, target = advantages(state.params, state.stats, batch)
+        flat = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), (batch, advantage, target))
+        key, epoch_key = jax.random.split(state.key)
+        (params, opt_state, _, _), info = jax.lax.scan(
+            update_epoch,
+            (state.params, state.opt_state, state.stats, flat),
+            jax.random.split(epoch_key, config.update_epochs),
+        )
+        stats = rl.update_normaliser(state.stats, batch.obs) if config.normalise_observations else state.stats
+        ended = jax.tree.map(jnp.sum, ended)
+        count = jnp.maximum(ended["count"], 1)
+        metrics = {
+            "episodes": ended["count"],
+            "episode_return": jnp.where(ended["count"] > 0, ended["return"] / count, jnp.nan),
+            "episode_length": jnp.where(ended["count"] > 0, ended["length"] / count, jnp.nan),
+            "full_episodes": jnp.where(ended["count"] > 0, ended["full"] / count, jnp.nan),
+            "reward_per_step": jnp.mean(batch.reward),
+            "std": jnp.mean(jnp.exp(params["log_std"])),
+            **{name: jnp.mean(value) for name, value in info.items()},
+        }
+        return state._replace(params=params, opt_state=opt_state, stats=stats, key=key), metrics
+
+    return iteration
+
+
+def export_params(state: TrainState) -> dict:
+    """The parameters a checkpoint holds (numpy): networks, log std and observation statistics."""
+    params = jax.tree.map(np.asarray, state.params)
+    return dict(params, obs_mean=np.asarray(state.stats.mean), obs_var=np.asarray(state.stats.var),
+                obs_count=np.asarray(state.stats.count))  # fmt: skip
+
+
+def act(task: DbdFuncEnv, params: dict):
+    """The deterministic policy of exported (or loaded) params: obs (..., obs_size) -> action (..., A)."""
+    return rl.act(task, params)
+
+
+def train(
+    task: DbdFuncEnv,
+    config: PPOConfig = PPOConfig(),
+    total_steps: int | None = None,
+    time_budget_s: float | None = None,
+    seed: int = 0,
+    eval_every: int = 0,
+    eval_episodes: int = 16,
+    evaluate_initial: bool = False,
+    progress: bool = True,
+) -> Result:
+    """Train a PPO policy on `task` (its max_episode_steps is the time limit; it must have one).
+
+    Stops after `total_steps` env steps (rounded up to whole iterations) or once `time_budget_s`
+    wall-clock seconds (compilation included) have passed, whichever comes first; at least one
+    must be given. eval_every: run a deterministic evaluation of `eval_episodes` episodes every
+    that many iterations (0: only at the end). evaluate_initial: also evaluate the untrained
+    policy first (Result.initial_evaluation). Returns a `Result`.
+    """
+    if total_steps is None and time_budget_s is None:
+        raise ValueError("train: give total_steps or time_budget_s")
+    if task.max_episode_steps is None:
+        raise ValueError("train: the task needs max_episode_steps (the time limit PPO bootstraps at)")
+    iterations = None if total_steps is None else max(1, -(-total_steps // config.batch_size))
+    rate = (
+        config.learning_rate
+        if iterations is None
+        else optax.linear_schedule(
+            config.learning_rate, 0.1 * config.learning_rate, iterations * config.update_epochs * config.num_minibatches
+        )
+    )
+    optimiser = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate, eps=1e-5))
+    clock = rl.Clock()
+    key = jax.random.PRNGKey(seed)
+    key, init_key, env_key = jax.random.split(key, 3)
+    params = init_params(task, config, init_key)
+    env_state, obs, _ = jax.jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
+    state = TrainState(
+        params=params,
+        opt_state=optimiser.init(params),
+        stats=rl.init_normaliser(task.observation_size),
+        env_state=env_state,
+        obs=obs,
+        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
+        episode_length=jnp.zeros((config.num_envs,), jnp.int32),
+        key=key,
+    )
+    evaluate = functools.partial(rl.evaluate, task, num_episodes=eval_episodes, seed=seed + 1)
+    initial_evaluation = evaluate(export_params(state)) if evaluate_initial else None
+    iteration = make_iteration(task, config, optimiser)
+    history: list[dict] = []
+    bar = _Progress(iterations or 10**9, "ppo", progress and iterations is not None)
+    compile_s = None
+    index = 0
+    try:
+        while True:
+            state, metrics = iteration(state)
+            metrics = {name: float(value) for name, value in metrics.items()}
+            if compile_s is None:
+                compile_s = clock.wall()
+            index += 1
+            row = {"iteration": index, "env_steps": index * config.batch_size, "wall_s": clock.wall(),
+                   "cpu_s": clock.cpu(), **metrics}  # fmt: skip
+            if eval_every and index % eval_every == 0:
+                evaluation = evaluate(export_params(state))
+                row.update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
+                           eval_survival=evaluation["survival"])  # fmt: skip
+            history.append(row)
+            bar.update(metrics["episode_return"])
+            if not progress or iterations is None:
+                if progress and (index == 1 or index % 10 == 0):
+                    print(_line(row), flush=True)
+            if not all(math.isfinite(row[name]) for name in ("policy_loss", "value_loss", "std")):
+                print("ppo: a loss went non-finite; stopping", file=sys.stderr)
+                break
+            if iterations is not None and index >= iterations:
+                break
+            if time_budget_s is not None and clock.wall() >= time_budget_s:
+                break
+    finally:
+        bar.close()
+    train_wall, train_cpu = clock.wall(), clock.cpu()
+    params = export_params(state)
+    evaluation = evaluate(params)
+    history[-1].update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
+                       eval_survival=evaluation["survival"])  # fmt: skip
+    summary = {
+        "algorithm": "ppo",
+        "config": dataclasses.asdict(config),
+        "seed": seed,
+        "iterations": index,
+        "env_steps": index * config.batch_size,
+        "compile_wall_s": compile_s,
+        "train_wall_s": train_wall,
+        "train_cpu_s": train_cpu,
+        "env_steps_per_s": index * config.batch_size / train_wall,
+        "load_average_at_start": clock.load_at_start,
+        "max_episode_steps": task.max_episode_steps,
+        "evaluation": {k: v for k, v in evaluation.items() if not isinstance(v, np.ndarray)},
+        "evaluation_lengths": evaluation["lengths"].tolist(),
+        "initial_evaluation": None
+        if initial_evaluation is None
+        else {k: v for k, v in initial_evaluation.items() if not isinstance(v, np.ndarray)},
+        "machine": rl.machine(),
+    }
+    return Result(params, history, evaluation, initial_evaluation, summary)
+
+
+def _line(row: dict) -> str:
+    return (f"it {row['iteration']:5d} steps {row['env_steps']:8d} wall {row['wall_s']:7.1f}s "
+            f"return {row['episode_return']:7.2f} length {row['episode_length']:6.1f} "
+            f"full {row['full_episodes']:.2f} std {row['std']:.3f} kl {row['approx_kl']:.4f}")  # fmt: skip
+
+
+def load(path: str | Path) -> tuple[dict, dict]:
+    """(params, metadata) of a checkpoint written by the CLI/`rl.save_result` (no pickle)."""
+    from . import checkpoint
+
+    return checkpoint.load(path)
+
+
+def main(argv: list[str] | None = None) -> Result:
+    from dbdjax.envs import TASKS
+
+    defaults = PPOConfig()
+    parser = argparse.ArgumentParser(
+        prog="python -m dbdjax.training.ppo",
+        description="Train a PPO policy on a dbdjax env (JAX-native vector env, jitted iterations). Writes "
+        "<out>/<name>.npz (checkpoint, no pickle), <name>.json (settings, timings, per-iteration metrics) and "
+        "<name>.png (return and episode-length curves).",
+    )
+    parser.add_argument("--env", default="dbdjax/RagdollStand-v0", choices=sorted(TASKS))
+    parser.add_argument("--steps", type=int, default=None, help="env steps to train for (default: until --minutes)")
+    parser.add_argument("--minutes", type=float, default=None, help="wall-clock budget, compile included")
+    parser.add_argument("--episode-steps", type=int, default=None, help="time limit (default: the env's)")
+    parser.add_argument("--num-envs", type=int, default=defaults.num_envs)
+    parser.add_argument("--unroll", type=int, default=defaults.unroll_length, help="steps per env per iteration")
+    parser.add_argument("--minibatches", type=int, default=defaults.num_minibatches)
+    parser.add_argument("--epochs", type=int, default=defaults.update_epochs)
+    parser.add_argument("--lr", type=float, default=defaults.learning_rate)
+    parser.add_argument("--gamma", type=float, default=defaults.gamma)
+    parser.add_argument("--entropy", type=float, default=defaults.entropy_coef)
+    parser.add_argument("--init-log-std", type=float, default=defaults.init_log_std)
+    parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
+    parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N iterations (0: at the end)")
+    parser.add_argument("--eval-episodes", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="ppo_output", help="output folder")
+    parser.add_argument("--name", default=None, help="file stem (default ppo_<env name in snake case>)")
+    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-plot", action="store_true")
+    args = parser.parse_args(argv)
+    if args.steps is None and args.minutes is None:
+        parser.error("give --steps or --minutes")
+    task = TASKS[args.env](max_episode_steps=args.episode_steps or TASKS[args.env].default_max_episode_steps)
+    config = PPOConfig(num_envs=args.num_envs, unroll_length=args.unroll, num_minibatches=args.minibatches,
+                       update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma, entropy_coef=args.entropy,
+                       init_log_std=args.init_log_std, hidden=tuple(args.hidden))  # fmt: skip
+    budget = None if args.minutes is None else 60.0 * args.minutes
+    result = train(task, config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,
+                   eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
+                   progress=not args.no_progress)  # fmt: skip
+    name = args.name or "ppo_" + rl.env_stem(args.env)
+    result.summary.update(env=args.env, title=f"PPO on {args.env}")
+    paths = rl.save_result(args.out, name, result.params, result.history, result.summary, plot=not args.no_plot)
+    s, e = result.summary, result.evaluation
+    print(f"ppo on {args.env}: {s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall ({s['train_cpu_s']:.0f} s "
+          f"CPU, compile {s['compile_wall_s']:.0f} s); evaluation: return {e['mean_return']:.1f}, length "
+          f"{e['mean_length']:.0f}, survival {e['survival']:.2f}")  # fmt: skip
+    for kind, path in paths.items():
+        print(f"  {kind}: {path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,277 @@
+"""What the RL trainers (`dbdjax.training.ppo`, `dbdjax.training.apg`) share: the policy network,
+observation normalisation, evaluation episodes, and the result files (checkpoint, JSON, plot).
+
+Policy: an MLP from the normalised observation to a residual action added to the env's *home*
+action, the action whose drive targets are the build pose (`task.action_of_control(0)`; for the
+ragdoll: standing straight). An untrained policy (last layer near zero) therefore holds the pose
+the model was built in instead of the middle of every joint range (which for the ragdoll is a
+crouch with 1.2 rad knees that falls in 12 steps). This is the residual-policy convention of
+robot learning; it changes where the search starts, not what the agent may do (every action in
+[-1, 1] stays reachable).
+
+Observation normalisation: running mean and variance over every observation seen in training
+(batched Welford/Chan update), the network sees (obs - mean) / sqrt(var + 1e-8) clipped to +-10.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import platform
+import re
+import resource
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dbdjax.envs.core import DbdFuncEnv
+
+from . import checkpoint
+
+# ----------------------------------------------------------------------------- networks
+
+
+def init_mlp(key: jax.Array, sizes: Sequence[int], last_scale: float = 1.0) -> list[dict[str, jnp.ndarray]]:
+    """Parameters of an MLP with layer widths `sizes` (input first): a list of {"w": (m, n), "b": (n,)}.
+
+    Orthogonal weights with gain sqrt(2) on hidden layers and `last_scale` on the last (PPO's
+    usual init: a small last layer starts the policy near its offset), zero biases."""
+    layers = []
+    keys = jax.random.split(key, len(sizes) - 1)
+    for index, (key_i, fan_in, fan_out) in enumerate(zip(keys, sizes[:-1], sizes[1:], strict=True)):
+        gain = last_scale if index == len(sizes) - 2 else math.sqrt(2.0)
+        weight = jax.nn.initializers.orthogonal(gain)(key_i, (fan_in, fan_out), jnp.float32)
+        layers.append({"w": weight, "b": jnp.zeros((fan_out,), jnp.float32)})
+    return layers
+
+
+def apply_mlp(layers: list[dict[str, jnp.ndarray]], x: jnp.ndarray) -> jnp.ndarray:
+    """The MLP on x (..., sizes[0]) -> (..., sizes[-1]); tanh between layers, linear output."""
+    for layer in layers[:-1]:
+        x = jnp.tanh(x @ layer["w"] + layer["b"])
+    return x @ layers[-1]["w"] + layers[-1]["b"]
+
+
+class Normaliser(NamedTuple):
+    """Running statistics of observations: mean (D,), var (D,), count () float32."""
+
+    mean: jnp.ndarray
+    var: jnp.ndarray
+    count: jnp.ndarray
+
+
+def init_normaliser(size: int) -> Normaliser:
+    return Normaliser(jnp.zeros((size,), jnp.float32), jnp.ones((size,), jnp.float32), jnp.zeros((), jnp.float32))
+
+
+def update_normaliser(stats: Normaliser, batch: jnp.ndarray) -> Normaliser:
+    """Merge a batch (..., D) into the statistics (Chan et al.'s parallel variance update)."""
+    batch = batch.reshape(-1, batch.shape[-1]).astype(jnp.float32)
+    n = jnp.asarray(batch.shape[0], jnp.float32)
+    batch_mean = jnp.mean(batch, axis=0)
+    batch_var = jnp.var(batch, axis=0)
+    total = stats.count + n
+    delta = batch_mean - stats.mean
+    mean = stats.mean + delta * n / total
+    m2 = stats.var * stats.count + batch_var * n + delta**2 * stats.count * n / total
+    return Normaliser(mean, m2 / total, total)
+
+
+def normalise(stats: Normaliser, obs: jnp.ndarray) -> jnp.ndarray:
+    """(obs - mean) / std, clipped to +-10 (the identity before any update: mean 0, var 1)."""
+    return jnp.clip((obs - stats.mean) * jax.lax.rsqrt(stats.var + 1e-8), -10.0, 10.0)
+
+
+def home_action(task: DbdFuncEnv) -> jnp.ndarray:
+    """(action_size,) the action whose drive targets are all zero: the build pose."""
+    return jnp.asarray(task.action_of_control(jnp.zeros((task.action_size,), task.dtype)), jnp.float32)
+
+
+def policy_action(task: DbdFuncEnv, policy: list[dict], stats: Normaliser, obs: jnp.ndarray) -> jnp.ndarray:
+    """The deterministic action (..., action_size): home action + MLP(normalised obs), before the
+    env's clip to [-1, 1]."""
+    return home_action(task) + apply_mlp(policy, normalise(stats, obs))
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+
+def act(task: DbdFuncEnv, params: dict) -> Callable[[jnp.ndarray], jnp.ndarray]:
+    """The deterministic policy of trained (or loaded) params {"policy": MLP, "obs_mean", "obs_var",
+    "obs_count", ...}: obs (..., obs_size) -> action (..., action_size)."""
+    return functools.partial(apply_policy, task, params)
+
+
+def apply_policy(task: DbdFuncEnv, params: dict, obs: jnp.ndarray) -> jnp.ndarray:
+    """`policy_action` with the network and observation statistics taken from `params`."""
+    stats = Normaliser(jnp.asarray(params["obs_mean"]), jnp.asarray(params["obs_var"]),
+                       jnp.asarray(params["obs_count"]))  # fmt: skip
+    return policy_action(task, jax.tree.map(jnp.asarray, params["policy"]), stats, obs)
+
+
+@functools.lru_cache(maxsize=32)
+def _episodes(task: DbdFuncEnv, num_episodes: int, steps: int) -> Callable:
+    """The jitted evaluation run (params, keys) -> (returns, lengths, alive), one compilation per
+    task, batch and length (tasks hash by their settings) whatever the parameters' values."""
+
+    @jax.jit
+    def run(params, keys):
+        state, obs, _ = jax.vmap(task.reset)(keys)
+
+        def body(carry, _):
+            state, obs, alive, total, length = carry
+            state, obs, reward, terminated, _, _ = jax.vmap(task.step)(state, apply_policy(task, params, obs))
+            total = total + jnp.where(alive, reward, 0.0)
+            length = length + alive.astype(jnp.int32)
+            return (state, obs, alive & ~terminated, total, length), None
+
+        zeros = jnp.zeros((num_episodes,))
+        start = (state, obs, jnp.ones((num_episodes,), bool), zeros, jnp.zeros((num_episodes,), jnp.int32))
+        (_, _, alive, total, length), _ = jax.lax.scan(body, start, None, length=steps)
+        return total, length, alive
+
+    return run
+
+
+def evaluate(
+    task: DbdFuncEnv,
+    params: dict,
+    num_episodes: int = 16,
+    seed: int = 1,
+    max_steps: int | None = None,
+) -> dict[str, Any]:
+    """Run `num_episodes` episodes of `task` with the deterministic policy of `params` (`act`), in
+    one vmapped, jitted scan (compiled once per task, batch and length).
+
+    An episode runs until it terminates or reaches `max_steps` (default task.max_episode_steps).
+    The same seed gives the same episodes (start headings, pushes) for any policy. Returns numpy
+    arrays "returns" and "lengths" (num_episodes,) and floats "mean_return", "mean_length",
+    "survival" (the fraction that reached max_steps without terminating).
+    """
+    steps = max_steps or task.max_episode_steps
+    if steps is None:
+        raise ValueError("evaluate: give max_steps for a task without max_episode_steps")
+    keys = jax.random.split(jax.random.PRNGKey(seed), num_episodes)
+    returns, lengths, alive = (np.asarray(x) for x in _episodes(task, num_episodes, steps)(params, keys))
+    return {
+        "returns": returns,
+        "lengths": lengths,
+        "mean_return": float(returns.mean()),
+        "mean_length": float(lengths.mean()),
+        "survival": float(alive.mean()),
+    }
+
+
+# ----------------------------------------------------------------------------- bookkeeping
+
+
+class Clock:
+    """Wall and CPU seconds since construction, and the load average (Unix) at the start."""
+
+    def __init__(self):
+        self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
+        self.load_at_start = _load()
+
+    def wall(self) -> float:
+        return time.perf_counter() - self.wall0
+
+    def cpu(self) -> float:
+        return time.process_time() - self.cpu0
+
+
+def _load() -> list[float] | None:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
+
+
+def env_stem(env_id: str) -> str:
+    """ "dbdjax/RagdollStand-v0" -> "ragdoll_stand", "dbdjax/IKChainReach-v0" -> "ik_chain_reach"."""
+    name = env_id.split("/")[-1].split("-")[0]
+    return re.sub(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", "_", name).lower()
+
+
+def machine() -> dict[str, Any]:
+    """What ran it: platform, CPU count, JAX backend and devices, load average now, peak RSS (MB)."""
+    return {
+        "platform": platform.platform(),
+        "processor": platform.machine(),
+        "cpus": os.cpu_count(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": [str(device) for device in jax.devices()],
+        "load_average_at_end": _load(),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+    }
+
+
+def save_result(
+    out: str | Path,
+    name: str,
+    params: Any,
+    history: list[dict[str, float]],
+    summary: dict[str, Any],
+    plot: bool = True,
+) -> dict[str, Path]:
+    """Write `<out>/<name>.npz` (the parameters, a `checkpoint` file: no pickle), `<name>.json`
+    (summary + the per-iteration history) and, if `plot`, `<name>.png` (`plot_history`).
+    Returns the paths written."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"checkpoint": checkpoint.save(out / f"{name}.npz", params, metadata=summary)}
+    paths["json"] = out / f"{name}.json"
+    paths["json"].write_text(json.dumps(dict(summary, history=history), indent=1, allow_nan=True))
+    if plot:
+        paths["plot"] = plot_history(history, summary, out / f"{name}.png")
+    return paths
+
+
+def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
+    """A matplotlib Figure (no pyplot): the training return and episode length against env steps,
+    with the wall-clock time on a second axis, and the evaluations of the deterministic policy."""
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(11, 4.2))
+    steps = np.array([row["env_steps"] for row in history], float)
+    title = summary.get("title", summary.get("algorithm", ""))
+    panels = [("episode_return", "eval_mean_return", "episode return"),
+              ("episode_length", "eval_mean_length", "episode length (steps)")]  # fmt: skip
+    walls = np.array([row.get("wall_s", np.nan) for row in history], float) / 60.0
+    for index, (key, eval_key, label) in enumerate(panels):
+        ax = figure.add_subplot(1, 2, index + 1)
+        values = np.array([row.get(key, np.nan) for row in history], float)
+        noise = " (stochastic)" if summary.get("algorithm") == "ppo" else ""
+        ax.plot(steps, values, color="tab:blue", label=f"training episodes{noise}")
+        evals = [(row["env_steps"], row[eval_key]) for row in history if eval_key in row]
+        initial = summary.get("initial_evaluation")
+        if initial:  # the untrained policy, at step 0
+            evals.insert(0, (0, initial[eval_key.removeprefix("eval_")]))
+        if evals:
+            ax.plot(*np.array(evals).T, "o-", color="tab:red", label="evaluation (deterministic)")
+        if key == "episode_length" and summary.get("max_episode_steps"):
+            ax.axhline(summary["max_episode_steps"], color="0.5", linestyle="--", label="full episode")
+        ax.set_xlabel("env steps")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+        if len(steps) > 1 and np.all(np.isfinite(walls)):
+            top = ax.secondary_xaxis(
+                "top", functions=(lambda s: np.interp(s, steps, walls), lambda m: np.interp(m, walls, steps))
+            )
+            top.set_xlabel("wall-clock minutes")
+        ax.legend(loc="lower right", fontsize=8)
+    figure.suptitle(title, fontsize=10)
+    figure.tight_layout()
+    return figure
+
+
+def plot_history(history: list[dict[str, float]], summary: dict[str, Any], path: str | Path) -> Path:
+    figure_history(history, summary).savefig(path, dpi=100)
+    return Path(path)
