@@ -340,6 +340,17 @@ def point_response(arm: jnp.ndarray, inv_mass: jnp.ndarray, inv_inertia: jnp.nda
     return jnp.swapaxes(columns, -1, -2)
 
 
+def apply_point_impulse(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, impulse: jnp.ndarray) -> BodyPair:
+    """Move the pair by an impulse (3,) (kg m: the multiplier step) acting at arm_a from a's centre
+    and its opposite at arm_b from b's: dX = M~^-1 J^T d lambda with J of (65), DBD (52)."""
+    return pair._replace(
+        dx_a=pair.dx_a + pair.inv_mass_a * impulse,
+        dx_b=pair.dx_b - pair.inv_mass_b * impulse,
+        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, impulse)),
+        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, impulse)),
+    )
+
+
 def point_spring(
     pair: BodyPair,
     arm_a: jnp.ndarray,
@@ -382,13 +393,7 @@ def point_spring(
     bound = jnp.where(limited, rule.bound, 0.0)
     candidate = jnp.where(limited & (size > bound), bound * direction, candidate)  # as (114)
     step = jnp.where(solvable, candidate - multiplier, 0.0)
-    moved = pair._replace(
-        dx_a=pair.dx_a + pair.inv_mass_a * step,
-        dx_b=pair.dx_b - pair.inv_mass_b * step,
-        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, step)),
-        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, step)),
-    )
-    return moved, multiplier + step
+    return apply_point_impulse(pair, arm_a, arm_b, step), multiplier + step
 
 
 def point_block(
@@ -429,10 +434,4 @@ def point_block(
     solvable = rule.active & (determinant > 0.0)  # K is positive definite unless both sides are static
     solve = math.inverse3(jnp.where(solvable, inverse_mass, eye))
     step = jnp.where(solvable, -rule.relaxation * math.matvec(solve, residual), 0.0)
-    moved = pair._replace(
-        dx_a=pair.dx_a + pair.inv_mass_a * step,
-        dx_b=pair.dx_b - pair.inv_mass_b * step,
-        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, step)),
-        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, step)),
-    )
-    return moved, multiplier + step
+    return apply_point_impulse(pair, arm_a, arm_b, step), multiplier + step
