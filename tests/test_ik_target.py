@@ -54,13 +54,16 @@ def test_rigid_target_puts_the_tip_on_a_reachable_goal_and_keeps_the_joints_clos
     print(f"\nrigid target: tip error over the last 2 s {1e3 * errors[60:].max():.4f} mm")
     assert errors[60:].max() < 1e-4
     gaps = np.asarray(jax.vmap(lambda s: dbd.diagnostics.joint_gaps(model, s))(trajectory))
-    print(f"largest joint gap {1e3 * gaps.max():.2f} mm")
-    assert gaps.max() < 2e-3  # 1.6 mm measured: the target closes a loop, root to tip, which the sweeps close slowly
+    print(f"largest joint gap {1e3 * gaps.max():.2f} mm, after the first quarter second {1e3 * gaps[15:].max():.2f} mm")
+    # The target closes a loop, root to tip, which the sweeps close slowly: 1.57 mm at step 3 as
+    # the chain starts to move, 0.39 mm from then on (measured at 4 x 16).
+    assert gaps.max() < 2e-3
+    assert gaps[15:].max() < 1e-3
 
 
 def test_force_limited_target_out_of_reach_stretches_the_chain_toward_it_without_tearing_it():
     """A goal 2.2 m away from a 1.5 m planar chain, a soft target whose pull is capped at 20 N:
-    the chain ends straight toward the goal (every link along the line from the root to the
+    after 10 s the chain lies straight toward the goal (every link along the line from the root to the
     goal) and the joints hold. (A rigid target with the same cap spends it along the chain,
     where the straight chain resists most, and turns it toward the goal only slowly. With hinges
     about z and y in turn, bent poses exist where the pull has no moment about any hinge axis;
@@ -68,15 +71,15 @@ def test_force_limited_target_out_of_reach_stretches_the_chain_toward_it_without
     builder, _, tip = chain(gravity=0.0, stiffness=100.0, max_force=20.0, joint_damping=5.0, planar=True)
     model = builder.finalize(dt=1 / 60, substeps=4, iterations=16)
     goal = np.array([-1.0, 2.0, 0.0])
-    final, trajectory = hold(model, goal - tip, 300)
+    final, trajectory = hold(model, goal - tip, 600)  # the heavy root turns last: 5.7 mm off the line at 5 s
     assert bool(dbd.is_finite(final))
     toward = goal / np.linalg.norm(goal)
     centres = np.asarray(final.pos)
     along = centres @ toward
     across = np.linalg.norm(centres - along[:, None] * toward, axis=1)
     print(f"\nunreachable target: link centres off the line {across.max():.2e} m")
-    np.testing.assert_allclose(along, (np.arange(5) + 0.5) * LINK, atol=1e-2)
-    assert across.max() < 1e-2  # 5.7 mm measured after 5 s (0.2 degrees), the heavy root still turning
+    np.testing.assert_allclose(along, (np.arange(5) + 0.5) * LINK, atol=2e-3)
+    assert across.max() < 2e-3  # 0.55 mm measured
     gaps = np.asarray(jax.vmap(lambda s: dbd.diagnostics.joint_gaps(model, s))(trajectory))
     assert gaps.max() < 1e-3
 

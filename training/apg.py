@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -45,7 +44,6 @@ import optax
 from dbdjax.envs.core import DbdFuncEnv
 
 from . import rl
-from .trajopt import _Progress
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,17 +78,7 @@ class TrainState(NamedTuple):
     key: jnp.ndarray
 
 
-@dataclasses.dataclass
-class Result:
-    """What `train` returns: params {"policy", "obs_mean", "obs_var", "obs_count"} (numpy; `act`
-    makes a policy of them), history (one dict per update), evaluation (the final deterministic
-    `rl.evaluate`), initial_evaluation, summary (JSON-serialisable settings and timings)."""
-
-    params: dict
-    history: list[dict]
-    evaluation: dict
-    initial_evaluation: dict | None
-    summary: dict
+Result = rl.Result
 
 
 def make_update(task: DbdFuncEnv, config: APGConfig, optimiser: optax.GradientTransformation):
@@ -174,9 +162,7 @@ def export_params(state: TrainState) -> dict:
             "obs_var": np.asarray(state.stats.var), "obs_count": np.asarray(state.stats.count)}  # fmt: skip
 
 
-def act(task: DbdFuncEnv, params: dict):
-    """The deterministic policy of exported (or loaded) params: obs (..., obs_size) -> action (..., A)."""
-    return rl.act(task, params)
+act = rl.act  # the deterministic policy of exported (or loaded) params
 
 
 def train(
@@ -214,62 +200,16 @@ def train(
         episode_length=jnp.zeros((config.num_envs,), jnp.int32),
         key=key,
     )
-    evaluate = functools.partial(rl.evaluate, task, num_episodes=eval_episodes, seed=seed + 1)
-    initial_evaluation = evaluate(export_params(state)) if evaluate_initial else None
-    update = make_update(task, config, optimiser)
-    history: list[dict] = []
-    bar = _Progress(updates or 10**9, "apg", progress and updates is not None)
-    compile_s = None
-    index = 0
-    try:
-        while True:
-            state, metrics = update(state)
-            metrics = {name: float(value) for name, value in metrics.items()}
-            if compile_s is None:
-                compile_s = clock.wall()
-            index += 1
-            row = {"iteration": index, "env_steps": index * config.num_envs * config.horizon, "wall_s": clock.wall(),
-                   "cpu_s": clock.cpu(), **metrics}  # fmt: skip
-            if eval_every and index % eval_every == 0:
-                evaluation = evaluate(export_params(state))
-                row.update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
-                           eval_survival=evaluation["survival"])  # fmt: skip
-            history.append(row)
-            bar.update(metrics["reward_per_step"])
-            if progress and updates is None and (index == 1 or index % 10 == 0):
-                print(_line(row), flush=True)
-            if updates is not None and index >= updates:
-                break
-            if time_budget_s is not None and clock.wall() >= time_budget_s:
-                break
-    finally:
-        bar.close()
-    train_wall, train_cpu = clock.wall(), clock.cpu()
-    params = export_params(state)
-    evaluation = evaluate(params)
-    history[-1].update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
-                       eval_survival=evaluation["survival"])  # fmt: skip
-    summary = {
-        "algorithm": "apg",
-        "config": dataclasses.asdict(config),
-        "seed": seed,
-        "updates": index,
-        "skipped_updates": int(sum(row["skipped"] for row in history)),
-        "env_steps": index * config.num_envs * config.horizon,
-        "compile_wall_s": compile_s,
-        "train_wall_s": train_wall,
-        "train_cpu_s": train_cpu,
-        "env_steps_per_s": index * config.num_envs * config.horizon / train_wall,
-        "load_average_at_start": clock.load_at_start,
-        "max_episode_steps": task.max_episode_steps,
-        "evaluation": {k: v for k, v in evaluation.items() if not isinstance(v, np.ndarray)},
-        "evaluation_lengths": evaluation["lengths"].tolist(),
-        "initial_evaluation": None
-        if initial_evaluation is None
-        else {k: v for k, v in initial_evaluation.items() if not isinstance(v, np.ndarray)},
-        "machine": rl.machine(),
-    }
-    return Result(params, history, evaluation, initial_evaluation, summary)
+    result = rl.run(
+        "apg", task, make_update(task, config, optimiser), state, export_params, clock,
+        steps_per_iteration=config.num_envs * config.horizon, iterations=updates, time_budget_s=time_budget_s,
+        seed=seed, eval_every=eval_every, eval_episodes=eval_episodes, evaluate_initial=evaluate_initial,
+        progress=progress, bar_metric="reward_per_step", line=_line,
+        summary={"algorithm": "apg", "config": dataclasses.asdict(config)},
+    )  # fmt: skip
+    result.summary["updates"] = len(result.history)
+    result.summary["skipped_updates"] = int(sum(row["skipped"] for row in result.history))
+    return result
 
 
 def _line(row: dict) -> str:
@@ -279,8 +219,6 @@ def _line(row: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> Result:
-    from dbdjax.envs import TASKS
-
     defaults = APGConfig()
     parser = argparse.ArgumentParser(
         prog="python -m dbdjax.training.apg",
@@ -288,44 +226,22 @@ def main(argv: list[str] | None = None) -> Result:
         "through the simulator over truncated unrolls). Writes <out>/<name>.npz (checkpoint, no pickle), "
         "<name>.json (settings, timings, per-update metrics) and <name>.png (return and episode-length curves).",
     )
-    parser.add_argument("--env", default="dbdjax/RagdollStand-v0", choices=sorted(TASKS))
+    rl.add_common_arguments(parser, "apg", defaults.num_envs, defaults.learning_rate, defaults.hidden)
     parser.add_argument("--updates", type=int, default=None, help="gradient updates (default: until --minutes)")
-    parser.add_argument("--minutes", type=float, default=None, help="wall-clock budget, compile included")
-    parser.add_argument("--episode-steps", type=int, default=None, help="time limit (default: the env's)")
-    parser.add_argument("--num-envs", type=int, default=defaults.num_envs)
     parser.add_argument("--horizon", type=int, default=defaults.horizon, help="env steps per gradient (truncation)")
-    parser.add_argument("--lr", type=float, default=defaults.learning_rate)
     parser.add_argument("--clip", type=float, default=defaults.max_grad_norm, help="global gradient-norm clip")
-    parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
     parser.add_argument("--no-remat", action="store_true", help="no jax.checkpoint per env step")
-    parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N updates (0: at the end)")
-    parser.add_argument("--eval-episodes", type=int, default=16)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="apg_output", help="output folder")
-    parser.add_argument("--name", default=None, help="file stem (default apg_<env name in snake case>)")
-    parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
     if args.updates is None and args.minutes is None:
         parser.error("give --updates or --minutes")
-    task = TASKS[args.env](max_episode_steps=args.episode_steps or TASKS[args.env].default_max_episode_steps)
     config = APGConfig(num_envs=args.num_envs, horizon=args.horizon, learning_rate=args.lr, max_grad_norm=args.clip,
                        hidden=tuple(args.hidden), remat=not args.no_remat)  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
-    result = train(task, config, updates=args.updates, time_budget_s=budget, seed=args.seed,
+    result = train(rl.task_of(args), config, updates=args.updates, time_budget_s=budget, seed=args.seed,
                    eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
                    progress=not args.no_progress)  # fmt: skip
-    name = args.name or "apg_" + rl.env_stem(args.env)
-    result.summary.update(env=args.env, title=f"APG on {args.env}")
-    paths = rl.save_result(args.out, name, result.params, result.history, result.summary, plot=not args.no_plot)
-    s, e = result.summary, result.evaluation
-    print(
-        f"apg on {args.env}: {s['updates']} updates, {s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall "
-        f"({s['train_cpu_s']:.0f} s CPU, compile {s['compile_wall_s']:.0f} s, {s['skipped_updates']} skipped); "
-        f"evaluation: return {e['mean_return']:.1f}, length {e['mean_length']:.0f}, survival {e['survival']:.2f}"
-    )
-    for kind, path in paths.items():
-        print(f"  {kind}: {path}")
+    s = result.summary
+    rl.finish(args, "apg", result, f"{s['updates']} updates ({s['skipped_updates']} skipped), ")
     return result
 
 

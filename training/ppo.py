@@ -42,9 +42,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import math
-import sys
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -56,7 +54,6 @@ import optax
 from dbdjax.envs.core import DbdFuncEnv
 
 from . import rl
-from .trajopt import _Progress
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,23 +116,7 @@ class Transition(NamedTuple):
     truncated: jnp.ndarray
 
 
-@dataclasses.dataclass
-class Result:
-    """What `train` returns.
-
-    params: {"policy", "value", "log_std", "obs_mean", "obs_var", "obs_count"} as numpy arrays
-    (what the checkpoint holds; `act` makes a policy of it). history: one dict per iteration
-    (env_steps, wall_s, cpu_s, episode_return/length of the training episodes that ended in it,
-    full_episodes (the fraction of them that reached the time limit), losses, approx_kl, std;
-    eval_* entries where an evaluation ran). evaluation: the final deterministic evaluation
-    (`rl.evaluate`). summary: settings, timings, machine (JSON-serialisable).
-    """
-
-    params: dict
-    history: list[dict]
-    evaluation: dict
-    initial_evaluation: dict | None
-    summary: dict
+Result = rl.Result
 
 
 def init_params(task: DbdFuncEnv, config: PPOConfig, key: jax.Array) -> dict:
@@ -287,9 +268,7 @@ def export_params(state: TrainState) -> dict:
                 obs_count=np.asarray(state.stats.count))  # fmt: skip
 
 
-def act(task: DbdFuncEnv, params: dict):
-    """The deterministic policy of exported (or loaded) params: obs (..., obs_size) -> action (..., A)."""
-    return rl.act(task, params)
+act = rl.act  # the deterministic policy of exported (or loaded) params
 
 
 def train(
@@ -339,65 +318,20 @@ def train(
         episode_length=jnp.zeros((config.num_envs,), jnp.int32),
         key=key,
     )
-    evaluate = functools.partial(rl.evaluate, task, num_episodes=eval_episodes, seed=seed + 1)
-    initial_evaluation = evaluate(export_params(state)) if evaluate_initial else None
-    iteration = make_iteration(task, config, optimiser)
-    history: list[dict] = []
-    bar = _Progress(iterations or 10**9, "ppo", progress and iterations is not None)
-    compile_s = None
-    index = 0
-    try:
-        while True:
-            state, metrics = iteration(state)
-            metrics = {name: float(value) for name, value in metrics.items()}
-            if compile_s is None:
-                compile_s = clock.wall()
-            index += 1
-            row = {"iteration": index, "env_steps": index * config.batch_size, "wall_s": clock.wall(),
-                   "cpu_s": clock.cpu(), **metrics}  # fmt: skip
-            if eval_every and index % eval_every == 0:
-                evaluation = evaluate(export_params(state))
-                row.update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
-                           eval_survival=evaluation["survival"])  # fmt: skip
-            history.append(row)
-            bar.update(metrics["episode_return"])
-            if not progress or iterations is None:
-                if progress and (index == 1 or index % 10 == 0):
-                    print(_line(row), flush=True)
-            if not all(math.isfinite(row[name]) for name in ("policy_loss", "value_loss", "std")):
-                print("ppo: a loss went non-finite; stopping", file=sys.stderr)
-                break
-            if iterations is not None and index >= iterations:
-                break
-            if time_budget_s is not None and clock.wall() >= time_budget_s:
-                break
-    finally:
-        bar.close()
-    train_wall, train_cpu = clock.wall(), clock.cpu()
-    params = export_params(state)
-    evaluation = evaluate(params)
-    history[-1].update(eval_mean_return=evaluation["mean_return"], eval_mean_length=evaluation["mean_length"],
-                       eval_survival=evaluation["survival"])  # fmt: skip
-    summary = {
-        "algorithm": "ppo",
-        "config": dataclasses.asdict(config),
-        "seed": seed,
-        "iterations": index,
-        "env_steps": index * config.batch_size,
-        "compile_wall_s": compile_s,
-        "train_wall_s": train_wall,
-        "train_cpu_s": train_cpu,
-        "env_steps_per_s": index * config.batch_size / train_wall,
-        "load_average_at_start": clock.load_at_start,
-        "max_episode_steps": task.max_episode_steps,
-        "evaluation": {k: v for k, v in evaluation.items() if not isinstance(v, np.ndarray)},
-        "evaluation_lengths": evaluation["lengths"].tolist(),
-        "initial_evaluation": None
-        if initial_evaluation is None
-        else {k: v for k, v in initial_evaluation.items() if not isinstance(v, np.ndarray)},
-        "machine": rl.machine(),
-    }
-    return Result(params, history, evaluation, initial_evaluation, summary)
+
+    def failure(row: dict) -> str | None:
+        finite = all(math.isfinite(row[name]) for name in ("policy_loss", "value_loss", "std"))
+        return None if finite else "a loss went non-finite"
+
+    result = rl.run(
+        "ppo", task, make_iteration(task, config, optimiser), state, export_params, clock,
+        steps_per_iteration=config.batch_size, iterations=iterations, time_budget_s=time_budget_s, seed=seed,
+        eval_every=eval_every, eval_episodes=eval_episodes, evaluate_initial=evaluate_initial, progress=progress,
+        bar_metric="episode_return", line=_line, failure=failure,
+        summary={"algorithm": "ppo", "config": dataclasses.asdict(config)},
+    )  # fmt: skip
+    result.summary["iterations"] = len(result.history)
+    return result
 
 
 def _line(row: dict) -> str:
@@ -414,8 +348,6 @@ def load(path: str | Path) -> tuple[dict, dict]:
 
 
 def main(argv: list[str] | None = None) -> Result:
-    from dbdjax.envs import TASKS
-
     defaults = PPOConfig()
     parser = argparse.ArgumentParser(
         prog="python -m dbdjax.training.ppo",
@@ -423,46 +355,25 @@ def main(argv: list[str] | None = None) -> Result:
         "<out>/<name>.npz (checkpoint, no pickle), <name>.json (settings, timings, per-iteration metrics) and "
         "<name>.png (return and episode-length curves).",
     )
-    parser.add_argument("--env", default="dbdjax/RagdollStand-v0", choices=sorted(TASKS))
+    rl.add_common_arguments(parser, "ppo", defaults.num_envs, defaults.learning_rate, defaults.hidden)
     parser.add_argument("--steps", type=int, default=None, help="env steps to train for (default: until --minutes)")
-    parser.add_argument("--minutes", type=float, default=None, help="wall-clock budget, compile included")
-    parser.add_argument("--episode-steps", type=int, default=None, help="time limit (default: the env's)")
-    parser.add_argument("--num-envs", type=int, default=defaults.num_envs)
     parser.add_argument("--unroll", type=int, default=defaults.unroll_length, help="steps per env per iteration")
     parser.add_argument("--minibatches", type=int, default=defaults.num_minibatches)
     parser.add_argument("--epochs", type=int, default=defaults.update_epochs)
-    parser.add_argument("--lr", type=float, default=defaults.learning_rate)
     parser.add_argument("--gamma", type=float, default=defaults.gamma)
     parser.add_argument("--entropy", type=float, default=defaults.entropy_coef)
     parser.add_argument("--init-log-std", type=float, default=defaults.init_log_std)
-    parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
-    parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N iterations (0: at the end)")
-    parser.add_argument("--eval-episodes", type=int, default=16)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="ppo_output", help="output folder")
-    parser.add_argument("--name", default=None, help="file stem (default ppo_<env name in snake case>)")
-    parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
     if args.steps is None and args.minutes is None:
         parser.error("give --steps or --minutes")
-    task = TASKS[args.env](max_episode_steps=args.episode_steps or TASKS[args.env].default_max_episode_steps)
     config = PPOConfig(num_envs=args.num_envs, unroll_length=args.unroll, num_minibatches=args.minibatches,
                        update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma, entropy_coef=args.entropy,
                        init_log_std=args.init_log_std, hidden=tuple(args.hidden))  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
-    result = train(task, config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,
+    result = train(rl.task_of(args), config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,
                    eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
                    progress=not args.no_progress)  # fmt: skip
-    name = args.name or "ppo_" + rl.env_stem(args.env)
-    result.summary.update(env=args.env, title=f"PPO on {args.env}")
-    paths = rl.save_result(args.out, name, result.params, result.history, result.summary, plot=not args.no_plot)
-    s, e = result.summary, result.evaluation
-    print(f"ppo on {args.env}: {s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall ({s['train_cpu_s']:.0f} s "
-          f"CPU, compile {s['compile_wall_s']:.0f} s); evaluation: return {e['mean_return']:.1f}, length "
-          f"{e['mean_length']:.0f}, survival {e['survival']:.2f}")  # fmt: skip
-    for kind, path in paths.items():
-        print(f"  {kind}: {path}")
+    rl.finish(args, "ppo", result, "")
     return result
 
 

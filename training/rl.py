@@ -15,6 +15,7 @@ Observation normalisation: running mean and variance over every observation seen
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -22,6 +23,7 @@ import os
 import platform
 import re
 import resource
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -167,6 +169,148 @@ def evaluate(
         "mean_length": float(lengths.mean()),
         "survival": float(alive.mean()),
     }
+
+
+# ----------------------------------------------------------------------------- the training loop
+
+
+@dataclasses.dataclass
+class Result:
+    """What `ppo.train` and `apg.train` return: params (numpy; the checkpoint's content, `act`
+    makes a policy of it), history (one dict per iteration: env_steps, wall_s, cpu_s, the
+    trainer's metrics, eval_* where an evaluation ran), evaluation (the final deterministic
+    `evaluate`), initial_evaluation (of the untrained policy, or None), summary (settings,
+    timings, machine; JSON-serialisable)."""
+
+    params: dict
+    history: list[dict]
+    evaluation: dict
+    initial_evaluation: dict | None
+    summary: dict
+
+
+def run(
+    name: str,
+    task: DbdFuncEnv,
+    iteration: Callable,
+    state: Any,
+    export_params: Callable,
+    clock: Clock,
+    steps_per_iteration: int,
+    iterations: int | None,
+    time_budget_s: float | None,
+    seed: int,
+    eval_every: int,
+    eval_episodes: int,
+    evaluate_initial: bool,
+    progress: bool,
+    bar_metric: str,
+    line: Callable[[dict], str],
+    failure: Callable[[dict], str | None] = lambda row: None,
+    summary: dict | None = None,
+) -> Result:
+    """Run `iteration(state) -> (state, metrics)` (jitted by the caller) until `iterations` or
+    `time_budget_s` wall seconds of `clock` (compilation included), logging one history row each,
+    evaluating every `eval_every` iterations and at the end. failure(row): a reason to stop early,
+    or None. summary: the trainer's own entries (algorithm, config, ...); timings, evaluations and
+    the machine are added here."""
+    from .trajopt import _Progress
+
+    evaluate_now = functools.partial(evaluate, task, num_episodes=eval_episodes, seed=seed + 1)
+    initial_evaluation = evaluate_now(export_params(state)) if evaluate_initial else None
+    history: list[dict] = []
+    bar = _Progress(iterations or 10**9, name, progress and iterations is not None)
+    compile_s, index = None, 0
+    try:
+        while True:
+            state, metrics = iteration(state)
+            metrics = {key: float(value) for key, value in metrics.items()}
+            if compile_s is None:
+                compile_s = clock.wall()
+            index += 1
+            row = {"iteration": index, "env_steps": index * steps_per_iteration, "wall_s": clock.wall(),
+                   "cpu_s": clock.cpu(), **metrics}  # fmt: skip
+            if eval_every and index % eval_every == 0:
+                row.update(_eval_entries(evaluate_now(export_params(state))))
+            history.append(row)
+            bar.update(metrics[bar_metric])
+            if progress and iterations is None and (index == 1 or index % 10 == 0):
+                print(line(row), flush=True)
+            reason = failure(row)
+            if reason is not None:
+                print(f"{name}: {reason}; stopping", file=sys.stderr)
+                break
+            if iterations is not None and index >= iterations:
+                break
+            if time_budget_s is not None and clock.wall() >= time_budget_s:
+                break
+    finally:
+        bar.close()
+    train_wall, train_cpu = clock.wall(), clock.cpu()
+    params = export_params(state)
+    evaluation = evaluate_now(params)
+    history[-1].update(_eval_entries(evaluation))
+
+    def scalars(result: dict) -> dict:
+        return {key: value for key, value in result.items() if not isinstance(value, np.ndarray)}
+
+    summary = dict(summary or {}, seed=seed, env_steps=index * steps_per_iteration, compile_wall_s=compile_s,
+                   train_wall_s=train_wall, train_cpu_s=train_cpu,
+                   env_steps_per_s=index * steps_per_iteration / train_wall,
+                   load_average_at_start=clock.load_at_start, max_episode_steps=task.max_episode_steps,
+                   evaluation=scalars(evaluation), evaluation_lengths=evaluation["lengths"].tolist(),
+                   initial_evaluation=None if initial_evaluation is None else scalars(initial_evaluation),
+                   machine=machine())  # fmt: skip
+    return Result(params, history, evaluation, initial_evaluation, summary)
+
+
+def _eval_entries(evaluation: dict) -> dict:
+    return {"eval_mean_return": evaluation["mean_return"], "eval_mean_length": evaluation["mean_length"],
+            "eval_survival": evaluation["survival"]}  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- command lines
+
+
+def add_common_arguments(parser, name: str, num_envs: int, learning_rate: float, hidden: Sequence[int]) -> None:
+    """The arguments every trainer's CLI takes (env, budget, batch, learning rate, network,
+    evaluation, seed, output); `name` is the trainer ("ppo", "apg")."""
+    from dbdjax.envs import TASKS
+
+    parser.add_argument("--env", default="dbdjax/RagdollStand-v0", choices=sorted(TASKS))
+    parser.add_argument("--minutes", type=float, default=None, help="wall-clock budget, compile included")
+    parser.add_argument("--episode-steps", type=int, default=None, help="time limit (default: the env's)")
+    parser.add_argument("--num-envs", type=int, default=num_envs)
+    parser.add_argument("--lr", type=float, default=learning_rate)
+    parser.add_argument("--hidden", type=int, nargs="+", default=list(hidden))
+    parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N iterations (0: at the end)")
+    parser.add_argument("--eval-episodes", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=f"{name}_output", help="output folder")
+    parser.add_argument("--name", default=None, help=f"file stem (default {name}_<env name in snake case>)")
+    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-plot", action="store_true")
+
+
+def task_of(args) -> DbdFuncEnv:
+    """The env `--env` names, with `--episode-steps` as its time limit (default: the env's)."""
+    from dbdjax.envs import TASKS
+
+    return TASKS[args.env](max_episode_steps=args.episode_steps or TASKS[args.env].default_max_episode_steps)
+
+
+def finish(args, name: str, result: Result, counts: str) -> None:
+    """Write the CLI's result files (`save_result`) and print what was trained; counts: the
+    trainer's own "N updates, " style prefix."""
+    stem = args.name or f"{name}_" + env_stem(args.env)
+    result.summary.update(env=args.env, title=f"{name.upper()} on {args.env}")
+    paths = save_result(args.out, stem, result.params, result.history, result.summary, plot=not args.no_plot)
+    s, e = result.summary, result.evaluation
+    print(f"{name} on {args.env}: {counts}{s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall "
+          f"({s['train_cpu_s']:.0f} s CPU, compile {s['compile_wall_s']:.0f} s); evaluation: return "
+          f"{e['mean_return']:.1f}, length {e['mean_length']:.0f}, survival {e['survival']:.2f}")  # fmt: skip
+    for kind, path in paths.items():
+        print(f"  {kind}: {path}")
 
 
 # ----------------------------------------------------------------------------- bookkeeping

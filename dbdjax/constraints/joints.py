@@ -150,9 +150,7 @@ def targets(
     (J, 3) torques gear * u of the torque actuators that act through a rotor row (gear: (T,), the
     torque actuators' `Torques.gear`), and the rotor rows' (J, 3) offsets (`rotor_offsets`; None:
     zero, the rotor then coasts with the bodies' prediction)."""
-    padded = jnp.zeros((structure.num_controls + 1,), dtype)  # the last entry reads as "no actuator"
-    if control is not None:
-        padded = padded.at[:-1].set(control)
+    padded = padded_control(structure, control, dtype)
     torque = jnp.zeros((structure.num_joints, 3), dtype)
     inside = np.flatnonzero(structure.torque_in_joint.array)
     if inside.size and gear is not None:
@@ -220,6 +218,13 @@ def rotor_offsets(model: Model, predicted: State, start: State, h: float) -> jnp
         return jnp.where(flag.rotor_ball, ball, jnp.where(flag.rotor_euler, gimbal, single))
 
     return jax.vmap(one)(model.joints, flag, *poses)
+
+
+def padded_control(structure: Structure, control: jnp.ndarray | None, dtype) -> jnp.ndarray:
+    """(num_controls + 1,) the control vector (zeros for None) and a last entry 0: the index
+    num_controls in the model's control tables reads as "no actuator"."""
+    padded = jnp.zeros((structure.num_controls + 1,), dtype)
+    return padded if control is None else padded.at[:-1].set(control)
 
 
 def rows_in_use(structure: Structure) -> frozenset[str]:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from dbdjax import math
+from dbdjax.constraints import joints
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
 from dbdjax.model import IKTargets, Structure
@@ -25,10 +26,7 @@ from dbdjax.model import IKTargets, Structure
 
 def goals(structure: Structure, targets: IKTargets, control: jnp.ndarray | None, dtype) -> jnp.ndarray:
     """(T, 3) m: each target's world position this step, rest_target plus its control offset."""
-    padded = jnp.zeros((structure.num_controls + 1,), dtype)  # the last entry reads as "no offset"
-    if control is not None:
-        padded = padded.at[:-1].set(control)
-    return targets.rest_target + padded[structure.ik_target_control.array]
+    return targets.rest_target + joints.padded_control(structure, control, dtype)[structure.ik_target_control.array]
 
 
 def project(target: IKTargets, goal: jnp.ndarray, bodies: BodySet, multiplier: jnp.ndarray, h: float):
