@@ -92,6 +92,33 @@ def test_drive_too_weak_for_its_load_sags_by_the_predicted_angle():
     assert abs(first_swing.max() - theta) < 0.01 * theta
 
 
+@pytest.mark.parametrize("initial_guess", ["zero", "tree"])
+def test_drive_on_a_light_arm_applies_its_torque_about_the_pivot(initial_guess):
+    """A spring drive (k = 10 N m/rad, 0.5 rad from its target) on an arm pinned 0.5 m from its
+    centre whose own inertia (1e-3 kg m^2) is small against m L^2 = 0.25: one step changes the
+    angular velocity by -k theta h / (m L^2 + I). The drive row turns the arm about its centre;
+    unless the joint point is held while it does (rows.PointHold), the point block turns it back
+    and the sweeps settle on 1.5 times that change, a fixed point that depends on the guess."""
+    mass, length, inertia, stiffness, angle, spin, h = 1.0, 0.5, 1e-3, 10.0, 0.5, 2.0, 1 / 240
+    with jax.enable_x64(True):
+        b = dbd.ModelBuilder(gravity=(0, 0, 0))
+        arm = b.add_body(pos=(length, 0, 0), mass=mass, inertia=(1e-4, inertia, inertia))
+        hinge = b.add_hinge_joint(dbd.WORLD, arm, anchor=(0, 0, 0), axis=(0, -1, 0))
+        b.add_drive(hinge, stiffness=stiffness, damping=0.0)
+        model = b.finalize(dt=h, iterations=8, initial_guess=initial_guess)
+        # The arm 0.5 rad below its target (horizontal), turning down at 2 rad/s.
+        pos = jnp.array([[length * np.cos(angle), 0.0, -length * np.sin(angle)]])
+        ang_vel = jnp.array([[0.0, spin, 0.0]])
+        state = dbd.State(
+            pos=pos, quat=jnp.array([[np.cos(angle / 2), 0.0, np.sin(angle / 2), 0.0]]),
+            vel=jnp.cross(ang_vel, pos), ang_vel=ang_vel,
+        )  # fmt: skip
+        change = float(dbd.step(model, state, jnp.zeros(1)).ang_vel[0, 1]) - spin
+    expected = -stiffness * angle * h / (mass * length**2 + inertia)
+    print(f"\nlight arm, {initial_guess} guess: d omega {change:.5f} rad/s, expected {expected:.5f}")
+    assert abs(change - expected) < 0.03 * abs(expected)
+
+
 def test_hinge_motor_reaches_its_speed_without_exceeding_its_torque():
     inertia, max_torque, speed = 0.2, 0.5, 3.0
     b = dbd.ModelBuilder(gravity=(0, 0, -9.81))

@@ -304,6 +304,10 @@ def project(
     pair = BodyPair.of(bodies)
     xi, alpha = joint.relaxation, joint.regularization
     lam = list(multipliers)
+    # The angular rows move the pair with the joint point held (rows.PointHold): where the point
+    # block is a full 3-D one, at the points of the start of this sweep.
+    _, hold_arm_a, hold_arm_b = joint_points(joint, flag, pair, *pair.current_quats())
+    hold = row.point_hold(pair, hold_arm_a, hold_arm_b, ~(flag.slider | flag.planar))
     hard = lambda active, inequality=False: row.rigid(xi, alpha, active, inequality)  # noqa: E731
 
     # Armature: MuJoCo's 1/2 armature qdot^2 on the joint coordinate q, in the step's variational
@@ -327,7 +331,7 @@ def project(
         reference, _ = hinge_angle(joint, still)
         angle, axis = hinge_angle(joint, pair)
         error, rule = rotor(0, wrapped(angle, reference), flag.rotor_hinge)
-        pair, lam[ROTOR] = row.angular_row(pair, -axis, error, lam[ROTOR], rule, h)
+        pair, lam[ROTOR], hold = row.angular_row(pair, -axis, error, lam[ROTOR], rule, h, hold)
     if "rotor_slider" in rows:
         reference, *_ = slider_travel(joint, flag, still)
         travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
@@ -338,16 +342,17 @@ def project(
         predicted = relative_rotation(joint, still.quat_a, still.quat_b)
         change = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(predicted))
         error = math.quat_rotate(quat_a, math.quat_log(change)) + target.rotor  # (ball torques are refused)
-        pair, kappa = row.angular_spring(
-            pair, error, jnp.stack(lam[ROTOR : ROTOR + 3]), xi, joint.armature[0], 0.0, jnp.inf, flag.rotor_ball, h
-        )
+        pair, kappa, hold = row.angular_spring(
+            pair, error, jnp.stack(lam[ROTOR : ROTOR + 3]), xi, joint.armature[0], 0.0, jnp.inf, flag.rotor_ball, h,
+            hold,
+        )  # fmt: skip
         lam[ROTOR : ROTOR + 3] = list(kappa)
     if "rotor_euler" in rows:
         reference, _ = _euler_angles(joint, flag, still, rows)
         for k in range(3):
             angles, directions = _euler_angles(joint, flag, pair, rows)
             error, rule = rotor(k, wrapped(angles[k], reference[k]), flag.rotor_euler[k])
-            pair, lam[ROTOR + k] = row.angular_row(pair, -directions[k], error, lam[ROTOR + k], rule, h)
+            pair, lam[ROTOR + k], hold = row.angular_row(pair, -directions[k], error, lam[ROTOR + k], rule, h, hold)
 
     # Drive (DBD 9): an implicit angular spring/damper toward the control target with the torque
     # limit (114). Hinge: the angle about the axle, wrapped to (-pi, pi]. Ball: the rotation
@@ -358,18 +363,18 @@ def project(
         angle, axis = hinge_angle(joint, pair)
         offset = angle - target.drive[0]
         error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
-        pair, lam[DRIVE] = row.angular_row(
+        pair, lam[DRIVE], hold = row.angular_row(
             pair, -axis, error, lam[DRIVE],
-            row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h,
+            row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h, hold,
         )  # fmt: skip
     if "ball_drive" in rows:
         quat_a, quat_b = pair.current_quats()
         goal = math.quat_exp(target.drive)  # the target relative rotation, in a's frame
         error_rotation = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
         error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
-        pair, kappa = row.angular_spring(
+        pair, kappa, hold = row.angular_spring(
             pair, error, jnp.stack(lam[DRIVE : DRIVE + 3]), xi, stiffness_h2, damping_h, torque_bound,
-            flag.ball_drive, h,
+            flag.ball_drive, h, hold,
         )  # fmt: skip
         lam[DRIVE : DRIVE + 3] = list(kappa)
     if "euler_drive" in rows:
@@ -379,18 +384,18 @@ def project(
             angles, directions = _euler_angles(joint, flag, pair, rows)
             offset = angles[k] - target.drive[k]
             error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
-            pair, lam[DRIVE + k] = row.angular_row(
+            pair, lam[DRIVE + k], hold = row.angular_row(
                 pair, -directions[k], error, lam[DRIVE + k],
                 row.spring(xi, flag.euler_drive, joint.axis_stiffness[k] * h**2, joint.axis_damping[k] * h,
-                           torque_bound), h,
+                           torque_bound), h, hold,
             )  # fmt: skip
 
     # Motor: the relative speed along the axle or slide axis, force-limited (SI 2.3.6, 2.4.6).
     force_bound = joint.motor_max_force * h**2
     if "angular_motor" in rows:
         _, axis = hinge_angle(joint, pair)
-        pair, lam[MOTOR] = row.angular_row(
-            pair, -axis, 0.0, lam[MOTOR], row.motor(xi, flag.angular_motor, target.motor * h, force_bound), h
+        pair, lam[MOTOR], hold = row.angular_row(
+            pair, -axis, 0.0, lam[MOTOR], row.motor(xi, flag.angular_motor, target.motor * h, force_bound), h, hold
         )
     if "linear_motor" in rows:
         _, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
@@ -432,9 +437,10 @@ def project(
         quat_a, quat_b = pair.current_quats()
         axis_1 = math.quat_rotate(quat_a, joint.local_axes_a[0])
         axis_2 = math.quat_rotate(quat_b, joint.local_axes_b[1])
-        pair, lam[ROTATION_LOCK] = row.angular_row(
-            pair, math.cross(axis_1, axis_2), math.dot(axis_1, axis_2), lam[ROTATION_LOCK], hard(flag.universal)
-        )
+        pair, lam[ROTATION_LOCK], hold = row.angular_row(
+            pair, math.cross(axis_1, axis_2), math.dot(axis_1, axis_2), lam[ROTATION_LOCK], hard(flag.universal),
+            hold=hold,
+        )  # fmt: skip
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83).
@@ -442,8 +448,8 @@ def project(
         for index, sign in ((ANGLE_LOWER, -1.0), (ANGLE_UPPER, 1.0)):
             angle, axis = hinge_angle(joint, pair)
             error = (angle - joint.lower) if sign < 0 else (joint.upper - angle)
-            pair, lam[index] = row.angular_row(
-                pair, sign * axis, error, lam[index], hard(flag.has_angle_limits, inequality=True)
+            pair, lam[index], hold = row.angular_row(
+                pair, sign * axis, error, lam[index], hard(flag.has_angle_limits, inequality=True), hold=hold
             )
 
     # Cone: the angle between the twist axes stays below the limit, DBD (81)-(83).
@@ -452,8 +458,8 @@ def project(
         cone_angle, cone_axis = math.angle_between(
             math.quat_rotate(quat_a, joint.local_axis_a), math.quat_rotate(quat_b, joint.local_axis_b)
         )
-        pair, lam[CONE] = row.angular_row(
-            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], hard(flag.has_cone, inequality=True)
+        pair, lam[CONE], hold = row.angular_row(
+            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], hard(flag.has_cone, inequality=True), hold=hold
         )
 
     # Universal / gimbal hinge limits: t_k in [lower_k, upper_k] by two one-sided rows per hinge
@@ -466,9 +472,10 @@ def project(
             angles, directions = _euler_angles(joint, flag, pair, rows)
             for index, sign in ((EULER_LOWER + k, -1.0), (EULER_UPPER + k, 1.0)):
                 error = (angles[k] - joint.axis_lower[k]) if sign < 0 else (joint.axis_upper[k] - angles[k])
-                pair, lam[index] = row.angular_row(
-                    pair, sign * directions[k], error, lam[index], hard(flag.euler_limited[k], inequality=True)
-                )
+                pair, lam[index], hold = row.angular_row(
+                    pair, sign * directions[k], error, lam[index], hard(flag.euler_limited[k], inequality=True),
+                    hold=hold,
+                )  # fmt: skip
 
     # Slider travel limits, SI (65)-(78), on the travel d = (p_b - p_a) . axis.
     if "has_travel_limits" in rows:
@@ -497,7 +504,7 @@ def project(
         constrained = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
         arm_a = arm_a - math.matvec(eye - constrained, delta)
     pair, point = row.point_block(
-        pair, arm_a, arm_b, delta, jnp.stack(lam[POINT : POINT + 3]), hard(True), constrained=constrained
+        pair, arm_a, arm_b, delta, jnp.stack(lam[POINT : POINT + 3]) + hold.impulse, hard(True), constrained=constrained
     )
     lam[POINT : POINT + 3] = list(point)
     dx, dtheta = pair.displacements()
