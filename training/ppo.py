@@ -363,12 +363,14 @@ def main(argv: list[str] | None = None) -> Result:
     parser.add_argument("--gamma", type=float, default=defaults.gamma)
     parser.add_argument("--entropy", type=float, default=defaults.entropy_coef)
     parser.add_argument("--init-log-std", type=float, default=defaults.init_log_std)
+    parser.add_argument("--reward-scale", type=float, default=defaults.reward_scale)
     args = parser.parse_args(argv)
     if args.steps is None and args.minutes is None:
         parser.error("give --steps or --minutes")
     config = PPOConfig(num_envs=args.num_envs, unroll_length=args.unroll, num_minibatches=args.minibatches,
                        update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma, entropy_coef=args.entropy,
-                       init_log_std=args.init_log_std, hidden=tuple(args.hidden))  # fmt: skip
+                       init_log_std=args.init_log_std, reward_scale=args.reward_scale,
+                       hidden=tuple(args.hidden))  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
     result = train(rl.task_of(args), config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,
                    eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
