@@ -243,9 +243,8 @@ class DbdFuncEnv(FuncEnv):
         return jnp.clip((jnp.clip(control, low, high) - home) / scale, -1.0, 1.0)
 
     def _control_map(self) -> tuple[jnp.ndarray, ...]:
-        return tuple(
-            jnp.asarray(x, self.dtype) for x in (self.control_low, self.control_high, self.control_home, self.control_scale)
-        )
+        arrays = (self.control_low, self.control_high, self.control_home, self.control_scale)
+        return tuple(jnp.asarray(x, self.dtype) for x in arrays)
 
     # ------------------------------------------------------------------------ the fused pair
     def reset(self, key: jnp.ndarray) -> tuple[EnvState, jnp.ndarray, dict[str, jnp.ndarray]]:
