@@ -7,6 +7,7 @@ evaluated on the same episodes (the same seeds, hence the same start headings an
 pushes), and the mean per-episode gain must exceed three standard errors of the per-episode
 gains (a paired t statistic above 3: the improvement is not evaluation noise)."""
 
+import argparse
 import json
 import subprocess
 import sys
@@ -53,6 +54,31 @@ def test_cli_help_runs(module):
 def test_cli_without_a_budget_is_refused():
     with pytest.raises(SystemExit):
         ppo.main(["--env", "dbdjax/RagdollStand-v0"])
+
+
+def test_kl_adaptive_learning_rate_follows_the_rsl_rl_rule():
+    """The rate held in the optimiser state is divided by 1.5 above 2 x desired KL, multiplied by
+    1.5 under half of it, unchanged between, and kept in [1e-5, 1e-2]."""
+    config = ppo.PPOConfig(learning_rate=1e-3, desired_kl=0.01)
+    params = {"w": jnp.ones(3)}
+    state = ppo.make_optimiser(config, iterations=None).init(params)
+    for kl, expected in ((0.05, 1e-3 / 1.5), (0.001, 1e-3 * 1.5), (0.01, 1e-3), (0.02, 1e-3), (0.005, 1e-3)):
+        rate = ppo._adapt_learning_rate(state, jnp.float32(kl), 0.01)[1].hyperparams["learning_rate"]
+        np.testing.assert_allclose(float(rate), expected, rtol=1e-6)
+    for _ in range(30):
+        state = ppo._adapt_learning_rate(state, jnp.float32(0.0), 0.01)
+    assert float(state[1].hyperparams["learning_rate"]) == pytest.approx(1e-2)
+
+
+def test_env_arguments_of_the_command_line_reach_the_env():
+    parser = argparse.ArgumentParser()
+    rl.add_common_arguments(parser, "ppo", 8, 1e-3, (16,))
+    args = parser.parse_args(["--episode-steps", "40", "--env-arg", "push_speed=[0.2, 0.6]", "--env-arg",
+                              "push_interval=3.0"])  # fmt: skip
+    task = rl.task_of(args)
+    assert task.push_speed == (0.2, 0.6) and task.push_interval == 3.0 and task.max_episode_steps == 40
+    with pytest.raises(SystemExit):
+        rl.task_of(parser.parse_args(["--env-arg", "push_speed"]))
 
 
 def test_normaliser_matches_the_mean_and_variance_of_all_batches_seen():
