@@ -17,10 +17,17 @@ wrappers in `dbdjax.envs.wrappers` use the fused `reset`/`step` (one jitted call
 
 Conventions every task follows:
 
-- Actions are drive targets scaled to [-1, 1] (`action_space` is Box(-1, 1)): -1 is the low
-  end of each control's range, +1 the high end. Entries outside [-1, 1] are clipped (the clip
-  passes no gradient outside the box). A non-finite entry (NaN, inf) is replaced by 0 (the middle
-  of its range) for the physics step, and the episode terminates with `info["nonfinite_action"]`.
+- Actions are drive targets scaled to [-1, 1] (`action_space` is Box(-1, 1)), centred on the
+  task's *home* targets (`control_home`; default the middle of each control's range, a legged
+  robot's default pose for the ragdoll): target = clip(home + scale x action, low, high) with
+  scale = max(high - home, home - low) per control (`control_scale`), the convention of
+  legged-robot RL (legged_gym: default pose + scale x action). Action 0 holds the home targets;
+  one slope per control (no kink at home) that reaches the farther end of the range at +-1 and
+  the nearer end before it (held beyond): every target in the range is reachable. With the
+  default home this is the plain linear map, -1 the low end, +1 the high end. Entries outside
+  [-1, 1] are clipped (the clip passes no gradient outside the box). A non-finite entry (NaN,
+  inf) is replaced by 0 (the home target) for the physics step, and the episode terminates with
+  `info["nonfinite_action"]`.
 - If the physics state goes non-finite, the last finite physics state is kept (so observations
   stay finite), the episode terminates and `info["nonfinite_state"]` is set.
 - A wrong action shape raises ValueError (shapes are static, so this also holds under jit).
@@ -90,8 +97,9 @@ class DbdFuncEnv(FuncEnv):
     """Base class of dbdjax tasks; subclasses implement the `task_*` hooks below.
 
     model: the engine Model the task simulates.
-    control_low, control_high: (num_controls,) the drive-target range actions map onto
-      (action -1 -> low, +1 -> high).
+    control_low, control_high: (num_controls,) the drive-target range actions map onto.
+    control_home: (num_controls,) the targets of action 0, within [low, high] (None: the middle
+      of each range, so that -1 -> low and +1 -> high); see the module docstring for the map.
     frame_skip: physics steps (of model.dt) per env step, all with the same control.
     max_episode_steps: truncation (None: never).
     config: the task's constructor arguments (hashable values). Two tasks of one class with equal
@@ -112,6 +120,7 @@ class DbdFuncEnv(FuncEnv):
         frame_skip: int = 1,
         max_episode_steps: int | None = None,
         config: dict[str, Any] | None = None,
+        control_home: Sequence[float] | np.ndarray | None = None,
     ):
         super().__init__()
         if not isinstance(frame_skip, (int, np.integer)) or isinstance(frame_skip, bool) or frame_skip < 1:
@@ -129,12 +138,17 @@ class DbdFuncEnv(FuncEnv):
             )
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low < high)):
             raise ValueError("control_low/high must be finite with low < high for every control")
+        home = 0.5 * (low + high) if control_home is None else np.asarray(control_home, np.float64).reshape(-1)
+        if home.shape != low.shape or not np.all((low <= home) & (home <= high)):
+            raise ValueError(f"control_home must have shape {low.shape} and lie within [control_low, control_high]")
         self._config = None if config is None else (type(self), tuple(sorted(config.items())))
         self.model = model
         self.frame_skip = int(frame_skip)
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
         self.control_low = low
         self.control_high = high
+        self.control_home = home
+        self.control_scale = np.maximum(high - home, home - low)  # > 0 as low < high
         self.action_size = int(model.num_controls)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(self.action_size,), dtype=np.float32)
         observation = jax.eval_shape(lambda key: self.reset(key)[1], jax.ShapeDtypeStruct((2,), jnp.uint32))
@@ -216,16 +230,21 @@ class DbdFuncEnv(FuncEnv):
         return jnp.where(finite, jnp.clip(action, -1.0, 1.0), 0.0), jnp.all(finite)
 
     def control(self, action: jnp.ndarray) -> jnp.ndarray:
-        """Drive targets (num_controls,) of an action in [-1, 1]: low + (a + 1) / 2 (high - low)."""
-        low = jnp.asarray(self.control_low, self.dtype)
-        high = jnp.asarray(self.control_high, self.dtype)
-        return low + 0.5 * (action + 1.0) * (high - low)
+        """Drive targets (num_controls,) of an action in [-1, 1]: clip(home + scale a, low, high)
+        (`control_home`, `control_scale`; module docstring)."""
+        low, high, home, scale = self._control_map()
+        return jnp.clip(home + scale * action, low, high)
 
     def action_of_control(self, control: jnp.ndarray) -> jnp.ndarray:
-        """The inverse of `control`: the action in [-1, 1] whose targets are `control` (clipped)."""
-        low = jnp.asarray(self.control_low, self.dtype)
-        high = jnp.asarray(self.control_high, self.dtype)
-        return jnp.clip(2.0 * (control - low) / (high - low) - 1.0, -1.0, 1.0)
+        """The inverse of `control` on the range: the action in [-1, 1] whose targets are `control`
+        ((control - home) / scale, clipped to [-1, 1]; a target outside the range gets the action
+        of the range's end)."""
+        low, high, home, scale = self._control_map()
+        return jnp.clip((jnp.clip(control, low, high) - home) / scale, -1.0, 1.0)
+
+    def _control_map(self) -> tuple[jnp.ndarray, ...]:
+        arrays = (self.control_low, self.control_high, self.control_home, self.control_scale)
+        return tuple(jnp.asarray(x, self.dtype) for x in arrays)
 
     # ------------------------------------------------------------------------ the fused pair
     def reset(self, key: jnp.ndarray) -> tuple[EnvState, jnp.ndarray, dict[str, jnp.ndarray]]:

@@ -8,11 +8,16 @@ build pose facing a random heading. Its 14 joint drives (DBD section 9) are the 
 drive targets, 3 per ball joint (waist, neck, shoulders, hips: a rotation vector in the parent's
 frame) and 1 per hinge (elbows, wrists, knees, ankles: an angle), all from the build pose.
 
-Action (26,) in [-1, 1]: the drive targets, mapped linearly onto the joints' target ranges
-(`doll.control_low` .. `doll.control_high`, from the joint limits): -1 the low end, +1 the high
-end, 0 the middle (not the build pose where a range is one-sided: a knee's 0 is 1.2 rad of
-flexion). Entries outside [-1, 1] are clipped; a NaN/inf entry ends the episode with
-info["nonfinite_action"].
+Action (26,) in [-1, 1]: the drive targets relative to the build pose, as legged-robot RL does
+(legged_gym: default pose + scale x action): target = clip(scale x action, low, high) within the
+joints' target ranges (`doll.control_low` .. `doll.control_high`, from the joint limits), scale =
+max(high, -low) per entry (`control_scale`: the farther end of the range is reached at +-1).
+Action 0 is the build pose, standing straight (`control_home` = 0). Symmetric ranges (waist,
+neck, shoulders, wrists, hips) map -1 -> low, +1 -> high; a knee or elbow (0 .. 2.4 rad) flexes
+by 2.4 a for a > 0 and stays straight for a <= 0; an ankle (-0.5 .. 0.8 rad) follows 0.8 a down to
+-0.5 at a = -0.625. (Earlier versions mapped action 0 to the middle of every range: a crouch with
+1.2 rad knees that falls within half a second.) Entries outside [-1, 1] are clipped; a NaN/inf entry ends the
+episode with info["nonfinite_action"].
 
 Observation (float32), in the heading frame (world rotated by the pelvis' yaw, so the heading
 never shows): pelvis height (1); the pelvis' and the torso's up axes (3 + 3); the other 14 bodies'
@@ -124,6 +129,7 @@ class RagdollEnv(DbdFuncEnv):
             model,
             control_low=doll.control_low,
             control_high=doll.control_high,
+            control_home=np.zeros(doll.num_controls),  # the build pose (module docstring)
             frame_skip=frame_skip,
             max_episode_steps=max_episode_steps,
             config={**base, **(config or {})},

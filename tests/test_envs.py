@@ -388,6 +388,36 @@ def test_joint_coordinates_are_zero_at_the_build_pose_and_the_chain_angles_of_an
     np.testing.assert_allclose(np.asarray(measured), np.asarray(angles), atol=2e-6)
 
 
+def test_ragdoll_action_zero_is_the_build_pose_and_one_slope_reaches_every_target(stand, task):
+    """Ragdoll actions are targets about the build pose (legged_gym's default + scale x action):
+    0 -> all targets 0; +-1 -> the ends of the symmetric ranges; a knee or elbow (0 .. 2.4) is
+    straight for a <= 0 and fully flexed at +1; an ankle (-0.5 .. 0.8) reaches -0.5 at -0.625;
+    action_of_control inverts control on the whole range. The IK chain keeps the plain linear map."""
+    np.testing.assert_array_equal(np.asarray(stand.control(jnp.zeros(26))), 0.0)
+    np.testing.assert_array_equal(np.asarray(stand.action_of_control(jnp.zeros(26))), 0.0)
+    np.testing.assert_allclose(np.asarray(stand.control(jnp.ones(26))), stand.control_high, atol=1e-6)
+    controls = stand.doll.controls
+    low_end = np.asarray(stand.control(-jnp.ones(26)))
+    for name in ("waist", "neck", "shoulder_l", "wrist_r", "hip_l", "hip_r"):
+        np.testing.assert_allclose(low_end[controls[name]], stand.control_low[controls[name]], atol=1e-6)
+    for name in ("knee_l", "knee_r", "elbow_l", "elbow_r"):
+        entry = controls[name]
+        np.testing.assert_array_equal(low_end[entry], 0.0)
+        half = np.asarray(stand.control(jnp.zeros(26).at[entry].set(0.5)))[entry]
+        np.testing.assert_allclose(half, 1.2, atol=1e-6)  # 0.5 x 2.4 rad
+    ankle = controls["ankle_l"]
+    for action, target in ((-0.625, -0.5), (-1.0, -0.5), (-0.25, -0.2), (0.5, 0.4)):
+        value = np.asarray(stand.control(jnp.zeros(26).at[ankle].set(action)))[ankle]
+        np.testing.assert_allclose(value, target, atol=1e-6)
+    targets = np.random.default_rng(5).uniform(stand.control_low, stand.control_high)
+    round_trip = stand.control(stand.action_of_control(jnp.asarray(targets, jnp.float32)))
+    np.testing.assert_allclose(np.asarray(round_trip), targets, atol=1e-5)
+    actions = jnp.asarray(np.random.default_rng(6).uniform(-1, 1, size=5), jnp.float32)
+    linear = task.control_low + 0.5 * (np.asarray(actions) + 1.0) * (task.control_high - task.control_low)
+    np.testing.assert_allclose(np.asarray(task.control(actions)), linear, atol=1e-6)
+    np.testing.assert_allclose(task.control_home, 0.0)
+
+
 def test_pushes_come_at_the_documented_rate_with_horizontal_kicks_of_the_documented_size(stand):
     count = 40_000
     kicks = np.asarray(quick_jit(jax.vmap(stand._push))(jax.random.split(jax.random.PRNGKey(2), count)))

@@ -58,7 +58,8 @@ from . import rl
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
-    """PPO hyper-parameters (defaults: the RagdollStand-v0 run of benchmarks/results).
+    """PPO hyper-parameters (defaults: the RagdollStand-v0 run of benchmarks/results, except the
+    starting learning rate, 3e-4 there: its first update moved the policy by a KL of 111).
 
     num_envs: envs stepped together (vmap). unroll_length: steps per env per iteration; an
     iteration has num_envs x unroll_length transitions, split into num_minibatches minibatches
@@ -66,25 +67,36 @@ class PPOConfig:
     clip_epsilon: the ratio clip. value_coef, entropy_coef: loss weights. learning_rate: Adam's
     (linearly decayed to 10% over the run when total_steps is known); max_grad_norm: global-norm
     clip. hidden: widths of both MLPs. init_log_std: log std of the initial policy (per action
-    entry, in action units where [-1, 1] is the whole range). normalise_observations: running
+    entry, in action units: 1 is a drive's `control_scale`, e.g. 1.6 rad at a hip). Small by
+    default (std 0.01): the ragdoll's drives are stiff (hips 10000 N m/rad, ankles 8000), so a
+    target error of 0.01 rad is already 80-100 N m, and at std 0.1 the exploration noise alone
+    topples the standing doll within about 34 steps (the deterministic home pose stands through
+    58 of 60 on the same pushes). normalise_observations: running
     mean/std normalisation. reward_scale: multiplies rewards before the value targets.
+    desired_kl: None, or the KL-adaptive learning rate of rsl_rl (legged_gym's PPO): before each
+    minibatch step the learning rate is divided by 1.5 when the policy's approximate KL from the
+    rollout policy exceeds 2 x desired_kl and multiplied by 1.5 when it is under desired_kl / 2
+    (kept in [1e-5, 1e-2]); `learning_rate` is then its starting value (no decay). A small
+    exploration std makes a fixed Adam step a large change of the policy (the KL of a mean shift
+    grows as 1 / std^2): the adaptive rate keeps each update's change of the policy bounded.
     """
 
-    num_envs: int = 64
+    num_envs: int = 32
     unroll_length: int = 32
-    num_minibatches: int = 8
+    num_minibatches: int = 4
     update_epochs: int = 4
     gamma: float = 0.97
     gae_lambda: float = 0.95
     clip_epsilon: float = 0.2
     value_coef: float = 0.5
     entropy_coef: float = 0.0
-    learning_rate: float = 3e-4
+    learning_rate: float = 3e-5
     max_grad_norm: float = 0.5
     hidden: tuple[int, ...] = (128, 128)
-    init_log_std: float = -1.6
+    init_log_std: float = -4.6
     normalise_observations: bool = True
-    reward_scale: float = 1.0
+    reward_scale: float = 0.1
+    desired_kl: float | None = 0.01
 
     @property
     def batch_size(self) -> int:
@@ -132,6 +144,32 @@ def init_params(task: DbdFuncEnv, config: PPOConfig, key: jax.Array) -> dict:
 
 def _gaussian_log_prob(mean, log_std, x):
     return jnp.sum(-0.5 * ((x - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * math.log(2.0 * math.pi), axis=-1)
+
+
+def _adapt_learning_rate(opt_state, approx_kl, desired_kl):
+    """rsl_rl's rule on the learning rate held in opt_state[1] (optax.inject_hyperparams(adam))."""
+    adam = opt_state[1]
+    rate = adam.hyperparams["learning_rate"]
+    rate = jnp.where(approx_kl < 0.5 * desired_kl, rate * 1.5, rate)
+    rate = jnp.where(approx_kl > 2.0 * desired_kl, adam.hyperparams["learning_rate"] / 1.5, rate)
+    rate = jnp.clip(rate, 1e-5, 1e-2)
+    return (opt_state[0], adam._replace(hyperparams={**adam.hyperparams, "learning_rate": rate}), *opt_state[2:])
+
+
+def make_optimiser(config: PPOConfig, iterations: int | None) -> optax.GradientTransformation:
+    """Global-norm clipping then Adam: a fixed rate (linearly decayed to 10% over `iterations` when
+    known) or, with `config.desired_kl`, the KL-adaptive rate (held in the optimiser state)."""
+    clip = optax.clip_by_global_norm(config.max_grad_norm)
+    if config.desired_kl is not None:
+        return optax.chain(clip, optax.inject_hyperparams(optax.adam)(learning_rate=config.learning_rate, eps=1e-5))
+    rate = (
+        config.learning_rate
+        if iterations is None
+        else optax.linear_schedule(
+            config.learning_rate, 0.1 * config.learning_rate, iterations * config.update_epochs * config.num_minibatches
+        )
+    )
+    return optax.chain(clip, optax.adam(rate, eps=1e-5))
 
 
 def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTransformation):
@@ -221,6 +259,9 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         params, opt_state, stats = carry
         batch, advantage, target = minibatch
         grads, info = jax.grad(loss_function, has_aux=True)(params, stats, batch, advantage, target)
+        if config.desired_kl is not None:
+            opt_state = _adapt_learning_rate(opt_state, info["approx_kl"], config.desired_kl)
+            info["learning_rate"] = opt_state[1].hyperparams["learning_rate"]
         updates, opt_state = optimiser.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
         info["grad_norm"] = optax.global_norm(grads)
@@ -295,14 +336,7 @@ def train(
     if task.max_episode_steps is None:
         raise ValueError("train: the task needs max_episode_steps (the time limit PPO bootstraps at)")
     iterations = None if total_steps is None else max(1, -(-total_steps // config.batch_size))
-    rate = (
-        config.learning_rate
-        if iterations is None
-        else optax.linear_schedule(
-            config.learning_rate, 0.1 * config.learning_rate, iterations * config.update_epochs * config.num_minibatches
-        )
-    )
-    optimiser = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate, eps=1e-5))
+    optimiser = make_optimiser(config, iterations)
     clock = rl.Clock()
     key = jax.random.PRNGKey(seed)
     key, init_key, env_key = jax.random.split(key, 3)
@@ -363,12 +397,21 @@ def main(argv: list[str] | None = None) -> Result:
     parser.add_argument("--gamma", type=float, default=defaults.gamma)
     parser.add_argument("--entropy", type=float, default=defaults.entropy_coef)
     parser.add_argument("--init-log-std", type=float, default=defaults.init_log_std)
+    parser.add_argument("--reward-scale", type=float, default=defaults.reward_scale)
+    parser.add_argument(
+        "--desired-kl",
+        type=float,
+        default=defaults.desired_kl,
+        help="KL-adaptive learning rate (rsl_rl's rule; default: fixed rate)",
+    )
     args = parser.parse_args(argv)
     if args.steps is None and args.minutes is None:
         parser.error("give --steps or --minutes")
     config = PPOConfig(num_envs=args.num_envs, unroll_length=args.unroll, num_minibatches=args.minibatches,
                        update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma, entropy_coef=args.entropy,
-                       init_log_std=args.init_log_std, hidden=tuple(args.hidden))  # fmt: skip
+                       init_log_std=args.init_log_std, reward_scale=args.reward_scale,
+                       desired_kl=args.desired_kl,
+                       hidden=tuple(args.hidden))  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
     result = train(rl.task_of(args), config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,
                    eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,

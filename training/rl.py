@@ -4,10 +4,10 @@ observation normalisation, evaluation episodes, and the result files (checkpoint
 Policy: an MLP from the normalised observation to a residual action added to the env's *home*
 action, the action whose drive targets are the build pose (`task.action_of_control(0)`; for the
 ragdoll: standing straight). An untrained policy (last layer near zero) therefore holds the pose
-the model was built in instead of the middle of every joint range (which for the ragdoll is a
-crouch with 1.2 rad knees that falls in 12 steps). This is the residual-policy convention of
-robot learning; it changes where the search starts, not what the agent may do (every action in
-[-1, 1] stays reachable).
+the model was built in. The ragdoll tasks and IKChainReach map action 0 to the build pose
+themselves (their home action is 0); the offset keeps the convention for any task whose action 0
+is elsewhere (e.g. the middle of a one-sided range). It changes where the search starts, not
+what the agent may do (every action in [-1, 1] stays reachable).
 
 Observation normalisation: running mean and variance over every observation seen in training
 (batched Welford/Chan update), the network sees (obs - mean) / sqrt(var + 1e-8) clipped to +-10.
@@ -280,6 +280,10 @@ def add_common_arguments(parser, name: str, num_envs: int, learning_rate: float,
     parser.add_argument("--env", default="dbdjax/RagdollStand-v0", choices=sorted(TASKS))
     parser.add_argument("--minutes", type=float, default=None, help="wall-clock budget, compile included")
     parser.add_argument("--episode-steps", type=int, default=None, help="time limit (default: the env's)")
+    parser.add_argument(
+        "--env-arg", action="append", default=[], metavar="NAME=VALUE",
+        help="a keyword argument of the env's constructor, VALUE read as JSON (e.g. push_speed=[0.2,0.6]); repeatable",
+    )  # fmt: skip
     parser.add_argument("--num-envs", type=int, default=num_envs)
     parser.add_argument("--lr", type=float, default=learning_rate)
     parser.add_argument("--hidden", type=int, nargs="+", default=list(hidden))
@@ -293,17 +297,28 @@ def add_common_arguments(parser, name: str, num_envs: int, learning_rate: float,
 
 
 def task_of(args) -> DbdFuncEnv:
-    """The env `--env` names, with `--episode-steps` as its time limit (default: the env's)."""
+    """The env `--env` names, with `--episode-steps` as its time limit (default: the env's) and the
+    `--env-arg NAME=VALUE` keyword arguments (VALUE as JSON; lists become tuples)."""
     from dbdjax.envs import TASKS
 
-    return TASKS[args.env](max_episode_steps=args.episode_steps or TASKS[args.env].default_max_episode_steps)
+    kwargs = {}
+    for item in getattr(args, "env_arg", []):
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise SystemExit(f"--env-arg wants NAME=VALUE, got {item!r}")
+        parsed = json.loads(value)
+        kwargs[name] = tuple(parsed) if isinstance(parsed, list) else parsed
+    cls = TASKS[args.env]
+    return cls(max_episode_steps=args.episode_steps or cls.default_max_episode_steps, **kwargs)
 
 
 def finish(args, name: str, result: Result, counts: str) -> None:
     """Write the CLI's result files (`save_result`) and print what was trained; counts: the
     trainer's own "N updates, " style prefix."""
     stem = args.name or f"{name}_" + env_stem(args.env)
-    result.summary.update(env=args.env, title=f"{name.upper()} on {args.env}")
+    env_args = list(getattr(args, "env_arg", []))
+    title = f"{name.upper()} on {args.env}" + (f" ({', '.join(env_args)})" if env_args else "")
+    result.summary.update(env=args.env, env_args=env_args, title=title)
     paths = save_result(args.out, stem, result.params, result.history, result.summary, plot=not args.no_plot)
     s, e = result.summary, result.evaluation
     print(f"{name} on {args.env}: {counts}{s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall "
