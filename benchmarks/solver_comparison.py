@@ -1,20 +1,41 @@
-"""DBD against sequential impulses on the scenes solver authors use to break solvers.
+"""DBD against sequential impulses (and Brax's positional pipeline) on the scenes solver authors use to break solvers.
 
     .venv/bin/python benchmarks/solver_comparison.py           # dt 1/240 .. 1/15 x iterations 1 .. 20
     .venv/bin/python benchmarks/solver_comparison.py --quick   # dt 1/60, 1/30 x iterations 2, 8
-    .venv/bin/python benchmarks/solver_comparison.py --scenes heavy_ball_chain,box_stack
+    .venv/bin/python benchmarks/solver_comparison.py --scenes heavy_ball_chain,box_stack --solvers dbd,impulse
+    .venv/bin/python benchmarks/solver_comparison.py --out part.json --resume --stop-after 60
+    .venv/bin/python benchmarks/solver_comparison.py --merge partA.json partB.json   # -> --out, plots
 
-writes benchmarks/results/solver_comparison.json (the settings it ran are recorded in it) and
-solver_comparison.png beside it. The scenes follow Erin Catto's Solver2D study (box2d.org/posts/2024/02/solver2d):
+writes benchmarks/results/solver_comparison.json (the settings it ran, the results, and the
+planned runs that have none yet as `unfinished`; rewritten after every run, so a run cut short
+keeps what finished and `--resume` goes on from it), solver_comparison.png (per scene, its main
+metric against 1 / dt per solver and iteration count) and solver_comparison_blow_up.png (which
+runs blew up). The scenes follow Erin Catto's Solver2D study (box2d.org/posts/2024/02/solver2d):
 a heavy ball on a 40-link chain (mass ratio 100:1), a chain started at twice its link spacing
 (recovery from a large error), a grid of jointed bodies, a vertical stack and a pyramid of boxes,
 a big box on small boxes (mass ratio 100:1), a friction ramp, overlapping boxes pushed apart
-(overlap recovery), and a chain 10 km from the origin (against the same chain at the origin).
-A ragdoll pile is left out: the engine has no ragdoll builder yet. Brax's positional pipeline is
-not run here either.
+(overlap recovery), a pile of three ragdolls (dbdjax.ragdoll, drives holding the build pose)
+dropped onto each other, and a chain and the ragdoll pile 10 km from the origin (against the same
+scene at the origin).
 
 Every scene runs for the same simulated time at each time step, one substep per step (so the
-step is the solver's step), with both solvers at the same iteration count. Measured per run:
+step is the solver's step), with both solvers at the same iteration count. The time step is an
+argument of the compiled rollout (it enters the step only as h = dt / substeps), so each
+(scene, solver, iterations) compiles once for every dt, in chunks of CHUNK steps; a far scene
+shares its twin's compilation. The runs go one iteration count at a time (8 first), so a sweep
+cut short has whole iteration counts.
+
+Brax (brax.positional.pipeline, when installed and not --no-brax) runs the scenes that MJCF and
+Brax can express, written from the dbdjax scene (bodies in the same order, the same masses and
+principal moments at the body origins, the same boxes, plane and friction; a ball joint as three
+hinges, since Brax has none), at the same dt, float32, one physics step per step. It has no
+iteration count: one position-level pass of joint and contact corrections per step
+(joint_scale_pos 0.5, joint_scale_ang 0.2, collide_scale 1, baumgarte_erp 0.1: mjcf.load's
+defaults); its rows have iterations null. Skipped (recorded with the reason, BRAX_SKIPPED): the
+stretched chain (a Brax state comes from generalized coordinates, so its joints cannot start
+open), the joint grid (closed loops), the ragdoll piles (no ranges on ball joints).
+
+Measured per run (Brax's trajectory goes through the same functions: its links are the scene's bodies):
   gap_max_mm, gap_final_mm   largest joint gap over the run / over its last 10 %
   penetration_max_mm, penetration_final_mm   deepest contact, likewise (collision.collide)
   energy_drift               (E_end - E_start) / (M |g| L), E kinetic + potential relative to
@@ -23,10 +44,11 @@ step is the solver's step), with both solvers at the same iteration count. Measu
                              solver made energy)
   max_speed, blew_up         the largest body speed (m/s); blew_up: a non-finite state or a body
                              faster than 100 m/s
-  compile_s, ms_per_step     XLA compile time and wall time per step after it (this machine)
+  compile_s, ms_per_step     XLA compile time (0: reused from an earlier dt) and wall time per
+                             step of the compiled chunks (this machine, shared: noisy)
 plus a figure of merit per scene (`extra`): the top box's drift for stacks, the acceleration
-error on the ramp, the separation of the pushed-apart boxes, the far chain's difference to the
-chain at the origin.
+error on the ramp, the push-apart speed of the overlapping boxes, the far scenes' difference to
+the same scene at the origin.
 """
 
 from __future__ import annotations
@@ -587,9 +609,12 @@ def run_brax(scene_name: str, dt: float, caches: dict) -> dict:
     steps = int(round(scene.seconds / dt))
     rollout, compile_s = _brax_rollout(caches, systems[0])
     trajectory, seconds = rollout(systems[0], dt, steps)
+    from brax import kinematics
+
+    placed, _ = kinematics.forward(systems[0], systems[0].init_q, jnp.zeros(systems[0].qd_size()))
     start = np.asarray(scene.start.pos)
-    if np.max(np.abs(np.asarray(systems[0].link.transform.pos)[0] - start[0])) > 1e-3 * max(1.0, np.abs(start).max()):
-        raise ValueError(f"{scene_name}: the Brax system's first body is not where the scene's is")
+    if np.max(np.abs(np.asarray(placed.pos) - start)) > 1e-3 * max(1.0, np.abs(start).max()):
+        raise ValueError(f"{scene_name}: the Brax system's bodies do not start where the scene's do")
     result["steps"] = steps
     result.update(measure(scene_name, scene, trajectory, dt, steps, caches))
     if scene.extra is not None:
