@@ -461,7 +461,10 @@ def run(scene_name: str, solver: str, dt: float, iterations: int, caches: dict) 
 
 
 def _rounded(result: dict) -> dict:
-    return {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v) for k, v in result.items()}
+    """Numbers to 6 decimals (dt kept whole: it is part of a run's key)."""
+    return {
+        k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) and k != "dt" else v) for k, v in result.items()
+    }
 
 
 # ------------------------------------------------------------------------------------ Brax
@@ -705,7 +708,7 @@ def plot_blow_up(results: list[dict], path: pathlib.Path) -> None:
     import matplotlib.pyplot as plt
 
     scenes = [s for s in SCENES if any(r["scene"] == s for r in results)]
-    dts = sorted({r["dt"] for r in results}, reverse=True)
+    dts = sorted({round(r["dt"], 6) for r in results}, reverse=True)
     rows = sorted({(r["solver"], r["iterations"] or 0) for r in results})
     columns = 4
     grid_rows = math.ceil(len(scenes) / columns)
@@ -715,7 +718,8 @@ def plot_blow_up(results: list[dict], path: pathlib.Path) -> None:
         cell = np.full((len(rows), len(dts)), 0.5)
         for r in results:
             if r["scene"] == scene and "blew_up" in r:
-                cell[rows.index((r["solver"], r["iterations"] or 0)), dts.index(r["dt"])] = 1.0 if r["blew_up"] else 0.0
+                column = dts.index(round(r["dt"], 6))
+                cell[rows.index((r["solver"], r["iterations"] or 0)), column] = 1.0 if r["blew_up"] else 0.0
         axis.imshow(cell, cmap="Reds", vmin=0, vmax=1, aspect="auto")
         axis.set_xticks(range(len(dts)), [f"1/{round(1 / d)}" for d in dts], fontsize=6)
         axis.set_yticks(range(len(rows)), [f"{s} {i}" if i else s for s, i in rows], fontsize=5)
@@ -732,7 +736,7 @@ def plot_blow_up(results: list[dict], path: pathlib.Path) -> None:
 
 
 def _key(result: dict) -> tuple:
-    return result["scene"], result["solver"], result["iterations"], round(result["dt"], 9)
+    return result["scene"], result["solver"], result["iterations"], round(result["dt"], 6)
 
 
 def plan(scenes: list[str], solvers: list[str], dts: list[float], iteration_counts: list[int]) -> list[tuple]:
@@ -754,7 +758,7 @@ def plan(scenes: list[str], solvers: list[str], dts: list[float], iteration_coun
 def write(path: pathlib.Path, settings: dict, results: list[dict], planned: list[tuple]) -> None:
     """The JSON (settings, results, and the planned runs that have no result yet as `unfinished`)."""
     done = {_key(r) for r in results}
-    unfinished = [list(run) for run in planned if (run[0], run[1], run[2], round(run[3], 9)) not in done]
+    unfinished = [list(run) for run in planned if (run[0], run[1], run[2], round(run[3], 6)) not in done]
     summary = dict(settings, results=results, unfinished=unfinished)
     path.write_text(json.dumps(summary, indent=1) + "\n")
 
@@ -794,16 +798,14 @@ def main() -> None:
         "brax": BRAX_NOTE if BRAX in solvers else None,
     }
     if args.merge:
-        results, planned = [], []
+        results = []
         for path in args.merge:
-            part = json.loads(pathlib.Path(path).read_text())
-            results += part["results"]
-            planned += [tuple(run) for run in part.get("unfinished", [])]
+            results += json.loads(pathlib.Path(path).read_text())["results"]
         order = {name: k for k, name in enumerate(SCENES)}
         results.sort(key=lambda r: (order[r["scene"]], r["solver"], r["iterations"] or 0, r["dt"]))
-        settings["solvers"] = sorted({r["solver"] for r in results})
+        settings["solvers"] = [s for s in ("dbd", "impulse", BRAX) if any(r["solver"] == s for r in results)]
         settings["brax"] = BRAX_NOTE if BRAX in settings["solvers"] else None
-        write(out, settings, results, planned)
+        write(out, settings, results, plan(list(SCENES), settings["solvers"], dts, iteration_counts))
         plot(results, out.with_suffix(".png"))
         plot_blow_up(results, out.with_name(out.stem + "_blow_up.png"))
         return
@@ -813,7 +815,7 @@ def main() -> None:
     caches = {"rollout": {}, "penetration": {}, "offsets": {}}
     began = time.perf_counter()
     for count, (name, solver, iterations, dt) in enumerate(planned):
-        if (name, solver, iterations, round(dt, 9)) in done:
+        if (name, solver, iterations, round(dt, 6)) in done:
             continue
         if args.stop_after is not None and time.perf_counter() - began > 60 * args.stop_after:
             print(f"stopping: {args.stop_after} minutes passed; the rest is recorded as unfinished", flush=True)

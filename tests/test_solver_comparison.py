@@ -154,7 +154,9 @@ def test_plan_runs_whole_iteration_counts_first_and_brax_once():
 
 
 def test_write_records_the_planned_runs_without_a_result_as_unfinished(tmp_path):
-    planned = comparison.plan(["a"], ["dbd"], [0.1, 0.2], [8])
+    """A result's dt may come back rounded to 6 decimals (0.016667 for 1/60): it still counts."""
+    planned = comparison.plan(["a"], ["dbd"], [1 / 60, 1 / 30], [8])
     path = tmp_path / "out.json"
-    comparison.write(path, {"dts": [0.1, 0.2]}, [{"scene": "a", "solver": "dbd", "iterations": 8, "dt": 0.1}], planned)
-    assert json.loads(path.read_text())["unfinished"] == [["a", "dbd", 8, 0.2]]
+    result = {"scene": "a", "solver": "dbd", "iterations": 8, "dt": 0.016667}
+    comparison.write(path, {"dts": [1 / 60, 1 / 30]}, [result], planned)
+    assert json.loads(path.read_text())["unfinished"] == [["a", "dbd", 8, 1 / 30]]
