@@ -705,12 +705,13 @@ def plot(results: list[dict], path: pathlib.Path) -> None:
 
 
 def plot_blow_up(results: list[dict], path: pathlib.Path) -> None:
-    """A map per scene: rows solver x iterations, columns dt; red: blew up, white: stayed finite
-    and under BLOW_UP_SPEED, grey: not run (or an error)."""
+    """A map per scene: rows solver x iterations, columns dt; red (x): blew up, white: stayed
+    finite and under BLOW_UP_SPEED, grey: no result (not run, skipped or an error)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
 
     scenes = [s for s in SCENES if any(r["scene"] == s for r in results)]
     dts = sorted({round(r["dt"], 6) for r in results}, reverse=True)
@@ -719,19 +720,22 @@ def plot_blow_up(results: list[dict], path: pathlib.Path) -> None:
     grid_rows = math.ceil(len(scenes) / columns)
     height = (0.22 * len(rows) + 1.6) * grid_rows
     figure, axes = plt.subplots(grid_rows, columns, figsize=(3.4 * columns, height), squeeze=False)
+    colours = ListedColormap(["white", "lightgrey", "tab:red"])
     for axis, scene in zip(axes.flat, scenes, strict=False):
-        cell = np.full((len(rows), len(dts)), 0.5)
+        cell = np.ones((len(rows), len(dts)))
         for r in results:
             if r["scene"] == scene and "blew_up" in r:
-                column = dts.index(round(r["dt"], 6))
-                cell[rows.index((r["solver"], r["iterations"] or 0)), column] = 1.0 if r["blew_up"] else 0.0
-        axis.imshow(cell, cmap="Reds", vmin=0, vmax=1, aspect="auto")
+                row, column = rows.index((r["solver"], r["iterations"] or 0)), dts.index(round(r["dt"], 6))
+                cell[row, column] = 2.0 if r["blew_up"] else 0.0
+        axis.imshow(cell, cmap=colours, vmin=0, vmax=2, aspect="auto")
+        for row, column in zip(*np.nonzero(cell == 2.0), strict=True):
+            axis.text(column, row, "x", ha="center", va="center", fontsize=6)
         axis.set_xticks(range(len(dts)), [f"1/{round(1 / d)}" for d in dts], fontsize=6)
         axis.set_yticks(range(len(rows)), [f"{s} {i}" if i else s for s, i in rows], fontsize=5)
         axis.set_title(scene, fontsize=8)
     for axis in list(axes.flat)[len(scenes) :]:
         axis.axis("off")
-    figure.suptitle("blew up (red: non-finite or a body over 100 m/s; grey: no result)", fontsize=9)
+    figure.suptitle("blew up (red x: non-finite or a body over 100 m/s; white: did not; grey: no result)", fontsize=9)
     figure.tight_layout()
     figure.savefig(path, dpi=110)
     plt.close(figure)
