@@ -807,9 +807,11 @@ def main() -> None:
         "brax": BRAX_NOTE if BRAX in solvers else None,
     }
     if args.merge:
-        results = []
-        for path in args.merge:
-            results += json.loads(pathlib.Path(path).read_text())["results"]
+        merged = {}
+        for path in args.merge:  # the first result of a run wins
+            for result in json.loads(pathlib.Path(path).read_text())["results"]:
+                merged.setdefault(_key(result), result)
+        results = list(merged.values())
         order = {name: k for k, name in enumerate(SCENES)}
         results.sort(key=lambda r: (order[r["scene"]], r["solver"], r["iterations"] or 0, r["dt"]))
         settings["solvers"] = [s for s in ("dbd", "impulse", BRAX) if any(r["solver"] == s for r in results)]
