@@ -812,6 +812,8 @@ def main() -> None:
         merged = {}
         for path in args.merge:  # the first result of a run wins
             for result in json.loads(pathlib.Path(path).read_text())["results"]:
+                if "error" in result:
+                    result["error"] = result["error"][:400]
                 merged.setdefault(_key(result), result)
         results = list(merged.values())
         order = {name: k for k, name in enumerate(SCENES)}
