@@ -318,6 +318,8 @@ def build(
     floor: bool = True,
     self_collision: bool = False,
     friction: float = FRICTION,
+    contype: int = DOLL_CONTYPE,
+    conaffinity: int | None = None,
 ) -> tuple[ModelBuilder, Ragdoll]:
     """Add a driven ragdoll, standing, to `builder` (a new one with gravity (0, 0, -9.81) if None).
 
@@ -334,6 +336,10 @@ def build(
     pos: (x, y) where the feet stand and z the ground height. floor: add a static plane at z =
       pos[2] (contype 1, friction `friction`). self_collision: let the doll's own non-jointed
       bodies touch (91 more contact pairs; see the module docstring).
+    contype, conaffinity: the doll's collision bits (MuJoCo's rule); conaffinity None:
+      SELF_CONAFFINITY if self_collision else DOLL_CONAFFINITY. Several dolls in one builder that
+      touch each other but not themselves: give doll k contype 2 << k and conaffinity 1 | (the
+      other dolls' contype bits).
     Returns (builder, Ragdoll). Finalize the builder yourself, e.g. with DT, SUBSTEPS, ITERATIONS.
     """
     builder = ModelBuilder() if builder is None else builder
@@ -344,8 +350,9 @@ def build(
     scale = height / REFERENCE_HEIGHT
     masses, moments = mass_properties(height, mass)
     drives = _drives(height, mass, drive_stiffness, drive_damping, max_torque)
-    material = dict(friction=friction, contype=DOLL_CONTYPE,
-                    conaffinity=SELF_CONAFFINITY if self_collision else DOLL_CONAFFINITY)  # fmt: skip
+    if conaffinity is None:
+        conaffinity = SELF_CONAFFINITY if self_collision else DOLL_CONAFFINITY
+    material = dict(friction=friction, contype=contype, conaffinity=conaffinity)
 
     def place(point) -> np.ndarray:
         return origin + scale * np.asarray(point, dtype=np.float64)
