@@ -513,7 +513,10 @@ def mjcf_xml(
                 hinges.append((name, (low, high), drives[spec.name]))
         lines.append(f'{pad}  <inertial pos="0 0 0" mass="{_numbers([masses[part.name]])}" '
                      f'diaginertia="{_numbers(moments[part.name])}"/>')  # fmt: skip
-        ends = np.concatenate([-half * scale * axis, half * scale * axis])
+        # MuJoCo points a fromto capsule's local z from the second end to the first (z = from - to): the
+        # first end on +axis gives the frame of `build` (z along +axis), so the two contact slots of a
+        # capsule come in the same order and the loaded doll steps as the built one.
+        ends = np.concatenate([half * scale * axis, -half * scale * axis])
         lines.append(f'{pad}  <geom name="{part.name}" type="capsule" fromto="{_numbers(ends)}" '
                      f'size="{_numbers([scale * part.radius])}" friction="{_numbers([friction])} 0.005 0.0001" '
                      f'contype="{DOLL_CONTYPE}" conaffinity="{DOLL_CONAFFINITY}"/>')  # fmt: skip

@@ -285,6 +285,15 @@ def test_mjcf_doll_has_the_same_bodies_joints_drives_and_shapes():
     np.testing.assert_allclose(loaded.control_range, model.control_range, atol=1e-9)
     kinds = lambda m: sorted((g.kind_a, g.kind_b, len(g.shapes.array)) for g in m.structure.contact_groups)  # noqa: E731
     assert kinds(loaded) == kinds(model)
+    # shapes body by body (MuJoCo lists the world's floor first, the builder last). The capsule
+    # frames must agree to the sign of their z axis: a flipped capsule swaps its two contact slots,
+    # which changes the order of the contact sweeps (44 mm apart after 90 steps before the fix)
+    by_body = lambda m: np.argsort(m.structure.shape_body.array, kind="stable")  # noqa: E731
+    ours, theirs = by_body(model), by_body(loaded)
+    np.testing.assert_array_equal(loaded.structure.shape_kind.array[theirs], model.structure.shape_kind.array[ours])
+    for field in ("size", "local_pos", "local_quat", "friction", "dynamic_friction", "restitution"):
+        got, want = np.asarray(getattr(loaded.shapes, field))[theirs], np.asarray(getattr(model.shapes, field))[ours]
+        np.testing.assert_allclose(got, want, atol=1e-6, err_msg=field)
     assert loaded.options.dt == pytest.approx(ragdoll.DT)
 
 
