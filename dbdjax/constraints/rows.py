@@ -266,13 +266,7 @@ class PointHold(NamedTuple):
 def point_hold(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, active: jnp.ndarray) -> PointHold:
     """Hold the point at arm_a on a and arm_b on b together while angular rows act (`active`:
     () bool, False for joints whose point block is not a full 3-D one)."""
-    eye = jnp.eye(3, dtype=arm_a.dtype)
-    inverse_mass = point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a) + point_response(
-        arm_b, pair.inv_mass_b, pair.inv_inertia_b
-    )  # K, (57), (66)
-    determinant = math.dot(inverse_mass[0], math.cross(inverse_mass[1], inverse_mass[2]))
-    held = active & (determinant > 0.0)
-    solve = jnp.where(held, math.inverse3(jnp.where(held, inverse_mass, eye)), 0.0)
+    solve, _ = definite_inverse(point_inverse_mass(pair, arm_a, arm_b), active)
     return PointHold(arm_a, arm_b, solve, jnp.zeros_like(arm_a))
 
 
@@ -331,8 +325,8 @@ def angular_spring(
     dc/dtheta_a = -1). multiplier: (3,) kappa so far (the torque on b times h^2). The update is
     the matrix form of the spring rule with the effective inverse inertia W = I_a^-1 + I_b^-1
     (113): d kappa = -xi (1 + (k h^2 + nu h) W)^-1 (kappa + k h^2 c + nu h drift) (112); then
-    |kappa| <= bound = tau_max h^2 (114). hold: the joint's point, held as in `angular_row`
-    (W becomes W - S^T K^-1 S). Returns the moved pair, the new kappa and the hold.
+    |kappa| <= bound = tau_max h^2 (114). hold: the joint's point, held as in `angular_row`.
+    Returns the moved pair, the new kappa and the hold.
     """
     inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b  # (113)
     drift = h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a)
@@ -383,9 +377,7 @@ def angular_block(
     if constrained is not None:  # restricted to range(P), as in point_block
         inverse_inertia = constrained @ inverse_inertia @ constrained + (eye - constrained)
         residual = math.matvec(constrained, residual)
-    determinant = math.dot(inverse_inertia[0], math.cross(inverse_inertia[1], inverse_inertia[2]))
-    solvable = rule.active & (determinant > 0.0)  # positive definite unless both sides are static
-    solve = math.inverse3(jnp.where(solvable, inverse_inertia, eye))
+    solve, solvable = definite_inverse(inverse_inertia, rule.active)
     step = jnp.where(solvable, -rule.relaxation * math.matvec(solve, residual), 0.0)
     moved = pair._replace(
         dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, step),
@@ -402,6 +394,24 @@ def point_response(arm: jnp.ndarray, inv_mass: jnp.ndarray, inv_inertia: jnp.nda
     turn = math.matvec(inv_inertia[None], math.cross(arm[None], eye))  # row j: I^-1 (arm x e_j)
     columns = inv_mass * eye + math.cross(turn, arm[None])  # row j: the response to e_j
     return jnp.swapaxes(columns, -1, -2)
+
+
+def point_inverse_mass(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray) -> jnp.ndarray:
+    """K (3, 3) m/kg, how the gap p_a - p_b between the points at arm_a on a and arm_b on b opens
+    per unit impulse at them: the point block's effective inverse mass, DBD (57), (66)."""
+    return point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a) + point_response(
+        arm_b, pair.inv_mass_b, pair.inv_inertia_b
+    )
+
+
+def definite_inverse(matrix: jnp.ndarray, active: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(matrix^-1, invertible) of a (3, 3) effective inverse mass, positive definite unless neither
+    side can move: 0 and False there (or where `active` is False), with the singular matrix kept
+    out of the inverse so that gradients stay finite."""
+    determinant = math.dot(matrix[0], math.cross(matrix[1], matrix[2]))
+    invertible = active & (determinant > 0.0)
+    eye = jnp.eye(3, dtype=matrix.dtype)
+    return jnp.where(invertible, math.inverse3(jnp.where(invertible, matrix, eye)), 0.0), invertible
 
 
 def apply_point_impulse(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, impulse: jnp.ndarray) -> BodyPair:
@@ -441,17 +451,14 @@ def point_spring(
     stiffness_h2 = jnp.where(rigid, 1.0, rule.stiffness_h2)
     compliance = jnp.where(rigid, 0.0, 1.0 / stiffness_h2)
     damping_ratio = jnp.where(rigid, 0.0, rule.damping_h / stiffness_h2)
-    inverse_mass = point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a) + point_response(
-        arm_b, pair.inv_mass_b, pair.inv_inertia_b
-    )
+    inverse_mass = point_inverse_mass(pair, arm_a, arm_b)
     drift = h * (pair.vel_a + math.cross(pair.ang_vel_a, arm_a) - pair.vel_b - math.cross(pair.ang_vel_b, arm_b)) + (
         pair.dx_a + math.cross(pair.dtheta_a, arm_a) - pair.dx_b - math.cross(pair.dtheta_b, arm_b)
     )  # J (h V* + dX): how far the points moved apart this substep
     system = compliance * eye + (1.0 + damping_ratio) * inverse_mass
     residual = compliance * multiplier + error + damping_ratio * drift
-    determinant = math.dot(system[0], math.cross(system[1], system[2]))
-    solvable = rule.active & (determinant > 0.0)
-    candidate = multiplier - rule.relaxation * math.matvec(math.inverse3(jnp.where(solvable, system, eye)), residual)
+    solve, solvable = definite_inverse(system, rule.active)
+    candidate = multiplier - rule.relaxation * math.matvec(solve, residual)
     direction, size = math.safe_normalize(candidate)
     limited = jnp.isfinite(rule.bound)
     bound = jnp.where(limited, rule.bound, 0.0)
@@ -482,11 +489,7 @@ def point_block(
     if rule.spring or rule.speed:
         raise ValueError("point_block takes the rigid rule only")
     eye = jnp.eye(3, dtype=error.dtype)
-    inverse_mass = (
-        point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a)
-        + point_response(arm_b, pair.inv_mass_b, pair.inv_inertia_b)
-        + rule.regularization * eye
-    )  # (57), (66), regularised as in (47)
+    inverse_mass = point_inverse_mass(pair, arm_a, arm_b) + rule.regularization * eye  # (57), (66), (47)
     residual = error + rule.regularization * multiplier
     if constrained is not None:
         # Restricted to range(P): P K P + (1 - P) maps range(P) to itself and its complement to
@@ -494,8 +497,6 @@ def point_block(
         projector = constrained
         inverse_mass = projector @ inverse_mass @ projector + (eye - projector)
         residual = math.matvec(projector, residual)
-    determinant = math.dot(inverse_mass[0], math.cross(inverse_mass[1], inverse_mass[2]))
-    solvable = rule.active & (determinant > 0.0)  # K is positive definite unless both sides are static
-    solve = math.inverse3(jnp.where(solvable, inverse_mass, eye))
+    solve, solvable = definite_inverse(inverse_mass, rule.active)
     step = jnp.where(solvable, -rule.relaxation * math.matvec(solve, residual), 0.0)
     return apply_point_impulse(pair, arm_a, arm_b, step), multiplier + step

@@ -138,9 +138,7 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
     if softness is None:
         if projector is not None:
             coupling = coupling + (eye - projector)  # invert on range(P) only (module docstring)
-        determinant = math.dot(coupling[0], math.cross(coupling[1], coupling[2]))
-        solvable = active & (determinant > 0.0)  # singular only when neither side can move
-        mass = jnp.where(solvable, math.inverse3(jnp.where(solvable, coupling, eye)), 0.0)
+        mass, _ = row.definite_inverse(coupling, active)  # singular only when neither side can move
         if projector is not None:
             mass = _matmul(_matmul(projector, mass), projector)
         mix = jnp.zeros_like(mass)
