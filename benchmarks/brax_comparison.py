@@ -20,7 +20,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import machine  # benchmarks/machine.py, beside this script
 import numpy as np
 
 import dbdjax as dbd
@@ -285,12 +285,7 @@ def main() -> None:
             "controls": "uniform random in ctrlrange (throughput); zero (dropped accuracy)",
         },
         "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "jax": jax.__version__,
-            "device": str(jax.devices()[0]),
-            "device_kind": jax.devices()[0].device_kind,
+            **machine.describe(),
             "load_average_1_5_15_min_at_start": [round(x, 2) for x in os.getloadavg()],
         },
         "note": "Every engine was measured in this one run, one after another, on the same machine and load: the "

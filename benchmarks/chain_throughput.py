@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import machine  # benchmarks/machine.py, beside this script
 
 import dbdjax as dbd
 
@@ -83,13 +82,7 @@ def main() -> None:
     results = {
         "scene": f"{LINKS}-body ball-joint chain, dt=1/60, 1 substep, 8 iterations, float32",
         "engine": f"dbdjax {dbd.__version__}",
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "jax": jax.__version__,
-            "device": str(jax.devices()[0]),
-        },
+        "machine": machine.describe(),
         "compile_step_s": round(step_compile, 3),
         "compile_grad_rollout32_s": round(grad_compile_time(model), 3),
         "batches": [measure_batch(model, batch, args.seconds) for batch in args.batches],

@@ -14,13 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import gymnasium as gym
 import jax
+import machine  # benchmarks/machine.py, beside this script
 
 import dbdjax.envs  # noqa: F401 (registers the envs)
 
@@ -66,12 +66,7 @@ def main() -> None:
     results = {
         "command": " ".join(["python benchmarks/env_throughput.py", *sys.argv[1:]]),
         "device": str(device),
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "jax": jax.__version__,
-        },
+        "machine": machine.describe(),
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
         "runs": [],
     }

@@ -22,7 +22,6 @@ import argparse
 import collections
 import json
 import os
-import platform
 import re
 import subprocess
 import sys
@@ -31,6 +30,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import machine  # benchmarks/machine.py, beside this script
 import numpy as np
 
 ASSETS = Path(__file__).resolve().parents[1] / "tests" / "assets"
@@ -194,13 +194,7 @@ def main() -> None:
     results: dict = {
         "settings": "1 substep, 4 iterations, float32, the XML's dt, uniform random controls in ctrlrange; "
         f"ms/step of a jitted {HORIZON}-step rollout (lax.scan of the vmapped step), best of {args.repeats}",
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "jax": jax.__version__,
-            "device": str(jax.devices()[0]),
-        },  # fmt: skip
+        "machine": machine.describe(),
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
         "note": args.note,
         "models": {},
