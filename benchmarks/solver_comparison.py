@@ -42,8 +42,11 @@ Measured per run (Brax's trajectory goes through the same functions: its links a
                              the start, M the total mass, L the scene's size
   energy_gain                the largest E_t - E_start over the run, in the same unit (> 0: the
                              solver made energy)
-  max_speed, blew_up         the largest body speed (m/s); blew_up: a non-finite state or a body
-                             faster than 100 m/s
+  max_speed, max_turn        the largest body speed (m/s) and the largest angle a body turns in one
+                             step at its angular velocity (|w| dt, rad)
+  blew_up                    a non-finite state, a body faster than 100 m/s, or one turning more
+                             than half a revolution per step (|w| dt > pi: the step no longer
+                             resolves its rotation; a chain tumbling so is not a solution either)
   compile_s, ms_per_step     XLA compile time (0: reused from an earlier dt) and wall time per
                              step of the compiled chunks (this machine, shared: noisy)
 plus a figure of merit per scene (`extra`): the top box's drift for stacks, the acceleration
@@ -78,6 +81,8 @@ LINK = 0.1  # m, chain link length
 LINK_MASS = 0.1
 LINK_INERTIA = (LINK_MASS * 0.01**2 / 2, LINK_MASS * LINK**2 / 12, LINK_MASS * LINK**2 / 12)
 BLOW_UP_SPEED = 100.0  # m/s
+BLOW_UP_TURN = math.pi  # rad turned by a body in one step
+PILE_SPACING = 0.55  # m between the dolls of the ragdoll pile
 
 
 @dataclasses.dataclass
@@ -243,13 +248,12 @@ def far_chain(**finalize) -> Scene:
 
 def _ragdoll_pile(origin, dolls: int = 3, **finalize) -> tuple[dbd.Model, dbd.State]:
     """`dolls` ragdolls (dbdjax.ragdoll, 1.8 m, 70 kg, drives holding the build pose) lying on
-    their backs, each turned 60 degrees about z from the one below and 0.4 m above it (centres at
-    0.3, 0.7, 1.1 m over `origin`), dropped onto each other and the floor. The dolls touch each
-    other and the floor but not themselves (doll k: contype 2 << k, conaffinity 1 | the others'
-    bits): 675 capsule pairs between three dolls, 45 capsule-plane pairs. The limbs of
-    neighbouring dolls start interpenetrating by up to 64 mm where they cross (the lowest doll
-    clears the floor by 55 mm), so the pile also recovers from overlap: its penetration_max is
-    that start overlap; penetration_final is the settled pile's."""
+    their backs, each turned 60 degrees about z from the one below and PILE_SPACING = 0.55 m above
+    it (centres at 0.3, 0.85, 1.4 m over `origin`), dropped onto each other and the floor. The dolls
+    touch each other and the floor but not themselves (doll k: contype 2 << k, conaffinity 1 | the
+    others' bits): 675 capsule pairs between three dolls, 45 capsule-plane pairs. Nothing overlaps
+    at the start (at 0.4 m the limbs crossed by 64 mm, at 0.45 m by 27 mm), so penetration_max is
+    what the solvers let the falling dolls sink into each other and the floor."""
     from dbdjax import host_math, ragdoll
 
     origin = np.asarray(origin, dtype=np.float64)
@@ -266,7 +270,7 @@ def _ragdoll_pile(origin, dolls: int = 3, **finalize) -> tuple[dbd.Model, dbd.St
         yaw = k * math.pi / 3
         turn = host_math.multiply(np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]), on_back)
         index = np.array(list(doll.bodies.values()))
-        centre = origin + (0.05 * k, -0.05 * k, 0.3 + 0.4 * k)
+        centre = origin + (0.05 * k, -0.05 * k, 0.3 + PILE_SPACING * k)
         pos[index] = centre + np.stack([host_math.rotate(turn, p - origin - (0, 0, 0.9)) for p in pos[index]])
         quat[index] = np.stack([host_math.multiply(turn, q) for q in quat[index]])
     start = dataclasses.replace(start, pos=jnp.asarray(pos, start.pos.dtype), quat=jnp.asarray(quat, start.quat.dtype))
@@ -414,7 +418,13 @@ def measure(scene_name: str, scene: Scene, trajectory: dbd.State, dt: float, ste
     finite = bool(np.all(np.isfinite(pos)) and np.all(np.isfinite(np.asarray(trajectory.vel))))
     speed = np.linalg.norm(np.asarray(trajectory.vel), axis=-1)
     max_speed = float(np.nanmax(speed)) if np.any(np.isfinite(speed)) else float("inf")
-    result = {"blew_up": (not finite) or max_speed > BLOW_UP_SPEED, "max_speed": round(max_speed, 4)}
+    spin = np.linalg.norm(np.asarray(trajectory.ang_vel), axis=-1)
+    max_turn = float(np.nanmax(spin)) * dt if np.any(np.isfinite(spin)) else float("inf")
+    result = {
+        "blew_up": (not finite) or max_speed > BLOW_UP_SPEED or max_turn > BLOW_UP_TURN,
+        "max_speed": round(max_speed, 4),
+        "max_turn": round(max_turn, 4),
+    }
     tail = max(1, steps // 10)
     if model.num_joints:
         gaps = np.asarray(diagnostics.joint_gaps(model, trajectory))
@@ -708,7 +718,7 @@ def plot(results: list[dict], path: pathlib.Path) -> None:
 
 def plot_blow_up(results: list[dict], path: pathlib.Path) -> None:
     """A map per scene: rows solver x iterations, columns dt; red (x): blew up, white: stayed
-    finite and under BLOW_UP_SPEED, grey: no result (not run, skipped or an error)."""
+    finite, under BLOW_UP_SPEED and BLOW_UP_TURN, grey: no result (not run, skipped or an error)."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -119,10 +119,16 @@ def apply(predicted: State, displacement: jnp.ndarray, rotation: jnp.ndarray, h:
     """Move the predicted state by the solver's displacement, DBD (36)-(39).
 
     displacement: (N, 3) m, rotation: (N, 3) rad (axis-angle), both relative to the prediction.
+
+    The angular velocity takes the rotation the body actually made, `math.shortest_rotation`:
+    the summed linearised corrections can exceed pi where a joint gap is larger than a lever arm
+    (tens of radians on a chain stretched to twice its length), yet exp(i rotation / 2) turns
+    the body by at most pi. Read literally, (38) turned that excess into spin of thousands of
+    rad/s, and energy.
     """
     return State(
         pos=predicted.pos + displacement,  # (37)
         quat=displaced_quat(predicted.quat, rotation),  # (39)
         vel=predicted.vel + displacement / h,  # (36)
-        ang_vel=predicted.ang_vel + rotation / h,  # (38)
+        ang_vel=predicted.ang_vel + math.shortest_rotation(rotation) / h,  # (38)
     )

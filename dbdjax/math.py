@@ -161,6 +161,20 @@ def quat_exp(rotation_vector: jnp.ndarray) -> jnp.ndarray:
     return jnp.concatenate([half_cos[..., None], half_sinc[..., None] * rotation_vector], axis=-1)
 
 
+def shortest_rotation(rotation_vector: jnp.ndarray) -> jnp.ndarray:
+    """The rotation vector of length <= pi that turns as exp(i rotation_vector / 2) does.
+
+    theta n and (theta - 2 pi k) n are the same rotation; this picks the k that makes the angle
+    smallest. Below pi the vector is returned as it is (bit for bit, with its gradient).
+    """
+    angle_squared = dot(rotation_vector, rotation_vector)
+    wraps = angle_squared > jnp.pi**2
+    angle = jnp.sqrt(jnp.where(wraps, angle_squared, 1.0))
+    turns = jnp.round(angle / (2.0 * jnp.pi))
+    scale = jnp.where(wraps, 1.0 - 2.0 * jnp.pi * turns / angle, 1.0)
+    return scale[..., None] * rotation_vector
+
+
 def quat_log(q: jnp.ndarray) -> jnp.ndarray:
     """Rotation vector theta * n of unit quaternion q, with theta in [0, pi] (shortest arc)."""
     q = jnp.where(q[..., :1] < 0.0, -q, q)  # q and -q are the same rotation

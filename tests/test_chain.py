@@ -46,6 +46,36 @@ def test_twenty_link_chain_gap_with_the_tree_guess():
     assert gap < 1e-3
 
 
+def test_chain_with_a_heavy_ball_makes_no_energy_at_large_steps():
+    """20 rods of 0.1 kg and a 10 kg ball (100:1) on a horizontal chain, released, dt = 1/30,
+    8 iterations, 3 s. The joints open by more than the rods' 5 cm lever arm when the ball swings
+    through, so a step's summed linearised rotation correction reaches tens of radians, while the
+    body turns by at most pi. DBD (38) read literally made that sum spin (thousands of rad/s) and
+    energy; the angular velocity must take the rotation the body made (math.shortest_rotation).
+    The energy (kinetic plus potential) may only fall."""
+    b = dbd.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    origin = np.array([0.0, 0.0, 5.0])
+    previous = dbd.WORLD
+    for i in range(20):
+        body = b.add_body(pos=origin + ((i + 0.5) * 0.1, 0, 0), mass=0.1, inertia=scenes.LINK_INERTIA)
+        b.add_ball_joint(previous, body, anchor=origin + (i * 0.1, 0, 0))
+        previous = body
+    ball = b.add_body(pos=origin + (2.1, 0, 0), mass=10.0, inertia=(0.04,) * 3)
+    b.add_ball_joint(previous, ball, anchor=origin + (2.0, 0, 0))
+    model = b.finalize(dt=1 / 30, iterations=8)
+    start = dbd.init(model)
+    _, trajectory = jax.jit(lambda s: dbd.rollout(model, s, steps=90))(start)
+    energy = np.asarray(diagnostics.energy(model, trajectory)) - float(diagnostics.energy(model, start))
+    unit = float(jnp.sum(model.bodies.mass)) * 9.81 * 2.2  # M g L
+    spin = np.linalg.norm(np.asarray(trajectory.ang_vel), axis=-1).max()
+    print(
+        f"\nheavy-ball chain, 20 links, dt 1/30: largest energy gain {energy.max() / unit:.4f} M g L, "
+        f"final {energy[-1] / unit:.3f}, largest angular speed {spin:.0f} rad/s"
+    )
+    assert np.all(np.isfinite(energy))
+    assert energy.max() <= 1e-3 * unit
+
+
 def test_free_chain_conserves_linear_momentum():
     links = 6
     rng = np.random.default_rng(0)

@@ -61,6 +61,8 @@ def test_twist_angle_of_a_pure_twist_is_its_angle():
             jnp.zeros(3),
         ),
         (lambda x: math.safe_asin(x[0]), jnp.ones(3)),
+        (lambda v: jnp.sum(math.shortest_rotation(v)), jnp.zeros(3)),
+        (lambda v: jnp.sum(math.shortest_rotation(v)), jnp.array([0.0, jnp.pi, 0.0])),
         (lambda x: math.safe_atan2(x[0], x[1]), jnp.zeros(3)),
     ],
 )
@@ -78,3 +80,17 @@ def test_safe_norm_gradient_is_exact_away_from_zero():
 def test_inverse3_inverts():
     m = jnp.asarray(np.random.default_rng(6).normal(size=(5, 3, 3))) + 3.0 * jnp.eye(3)
     np.testing.assert_allclose(math.inverse3(m) @ m, jnp.broadcast_to(jnp.eye(3), (5, 3, 3)), atol=1e-5)
+
+
+def test_shortest_rotation_turns_as_the_vector_does_by_at_most_pi():
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(200, 3))
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    angles = rng.uniform(0.0, 40.0, size=200)
+    vectors = jnp.asarray(axes * angles[:, None])
+    shortest = math.shortest_rotation(vectors)
+    assert np.all(np.linalg.norm(np.asarray(shortest), axis=-1) <= np.pi + 1e-5)
+    same = np.abs(np.sum(np.asarray(math.quat_exp(shortest) * math.quat_exp(vectors)), axis=-1))
+    np.testing.assert_allclose(same, 1.0, atol=1e-5)  # q and -q: the same rotation
+    below = angles <= np.pi
+    np.testing.assert_array_equal(np.asarray(shortest)[below], np.asarray(vectors)[below])
