@@ -257,6 +257,8 @@ def gradient_cost(engine: Engine, horizon: int, remat: bool) -> dict:
 
 # ------------------------------------------------------------------------------------------- main
 
+TASKS = ("throughput", "accuracy", "compile", "grad")
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -266,6 +268,13 @@ def main() -> None:
         "--engines",
         nargs="+",
         default=["dbdjax-dbd", "dbdjax-impulse", "brax-positional", "brax-generalized", "brax-mjx"],
+    )
+    parser.add_argument(
+        "--tasks",
+        nargs="+",
+        choices=TASKS,
+        default=list(TASKS),
+        help="which tasks to run; with a subset, the results file's other tasks are kept (merged per engine)",
     )
     parser.add_argument("--note", default="", help="appended to the JSON's note (e.g. what else loaded the machine)")
     parser.add_argument("--plot", type=Path, help="only redraw the plot of an existing results JSON")
@@ -300,19 +309,47 @@ def main() -> None:
     # Every model's engines first, then the tasks in order of what matters most (throughput, the
     # dropped model's gaps, compile times, gradient cost), the JSON rewritten after each task so
     # that a run cut short keeps what it measured (`unfinished` lists the rest).
+    # A subset of the tasks updates the file's earlier results: those tasks' fields are replaced,
+    # the others kept, and each run's machine and load recorded under "runs".
+    earlier = json.loads(out.read_text()) if set(args.tasks) != set(TASKS) and out.exists() else None
+    this_run = {"tasks": args.tasks, "machine": results["machine"]}
+    if earlier is not None:
+        first = {"tasks": list(TASKS), "machine": earlier["machine"], "note": earlier["note"]}
+        results["runs"] = [*earlier.get("runs", [first]), this_run]
+        results["models"] = earlier["models"]
+        results["note"] = (
+            "The tasks were measured in separate runs (`runs`: each run's tasks, machine, load and note); "
+            "within a task every engine was measured in the same run, one after another: the ratios between "
+            "engines are what this file reports; absolute numbers depend on what else the machine ran."
+        )
+        if args.note:
+            this_run["note"] = args.note
     per_model: dict[str, tuple[list[Engine], dict[str, dict]]] = {}
     for model_name in args.models:
         engines, skipped = make_engines(ASSETS / f"{model_name}.xml", args.engines)
-        per_engine: dict[str, dict] = {e.name: {"dt": e.dt, "throughput": [], "grad": []} for e in engines}
+        per_engine = results["models"].setdefault(model_name, {})
+        for e in engines:
+            fields = per_engine.setdefault(e.name, {"dt": e.dt})
+            for field in ("throughput", "grad"):
+                fields[field] = [] if field in args.tasks else fields.get(field, [])
+            rerun = ["batch" if task == "throughput" else task for task in args.tasks]
+            errors = [error for error in fields.pop("errors", []) if error.split()[0] not in rerun]
+            if errors:
+                fields["errors"] = errors
+        per_engine.pop("skipped", None)
         if skipped:
             per_engine["skipped"] = skipped
-        results["models"][model_name] = per_engine
         per_model[model_name] = (engines, per_engine)
-    tasks = [(m, e, "batch", b) for b in batches for m, (es, _) in per_model.items() for e in es]
-    tasks += [(m, e, "accuracy", None) for m, (es, _) in per_model.items() for e in es]
-    tasks += [(m, e, "compile", None) for m, (es, _) in per_model.items() for e in es]
-    tasks += [(m, e, "grad", (h, r)) for h in horizons for r in (False, True) for m, (es, _) in per_model.items()
-              for e in es if m == "humanoid"]  # fmt: skip
+    tasks = []
+    if "throughput" in args.tasks:
+        tasks += [(m, e, "batch", b) for b in batches for m, (es, _) in per_model.items() for e in es]
+    if "accuracy" in args.tasks:
+        tasks += [(m, e, "accuracy", None) for m, (es, _) in per_model.items() for e in es]
+    if "compile" in args.tasks:
+        tasks += [(m, e, "compile", None) for m, (es, _) in per_model.items() for e in es]
+    if "grad" in args.tasks:
+        tasks += [(m, e, "grad", (h, r)) for h in horizons for r in (False, True) for m, (es, _) in per_model.items()
+                  for e in es if m == "humanoid"]  # fmt: skip
     labels = [
         f"{m} {e.name} {kind} {argument if argument is not None else ''}".strip() for m, e, kind, argument in tasks
     ]
