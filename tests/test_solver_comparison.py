@@ -124,7 +124,7 @@ def test_brax_mjcf_of_each_scene_has_its_bodies_masses_and_start(built):
     from brax.io import mjcf
 
     for name in comparison.SCENES:
-        if name in comparison.BRAX_SKIPPED:
+        if name in comparison.BRAX_SKIPPED and name not in comparison.BRAX_TOO_SLOW:
             continue
         scene = built[name, "dbd"]
         xml = comparison.brax_mjcf(name, scene)
