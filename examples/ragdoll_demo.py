@@ -26,10 +26,12 @@ OUTPUT = Path(__file__).resolve().parents[1] / "demo_output"
 KEYFRAMES = [
     {},  # stand
     {"shoulder_l": (-1.2, 0.0, 0.0), "shoulder_r": (1.2, 0.0, 0.0)},  # arms out
-    {"shoulder_l": (-2.2, 0.0, 0.0), "shoulder_r": (2.2, 0.0, 0.0), "neck": (0.0, -0.3, 0.0)},  # arms up
+    {"shoulder_l": (-2.2, 0.0, 0.0), "shoulder_r": (2.2, 0.0, 0.0)},  # arms up
     {"shoulder_r": (2.2, 0.0, 0.0), "elbow_r": 1.2, "neck": (0.0, 0.0, 0.5)},  # wave
     {"shoulder_r": (2.2, 0.0, 0.0), "elbow_r": 0.2, "neck": (0.0, 0.0, -0.5)},
-    {"knee_l": 0.5, "knee_r": 0.5, "ankle_l": -0.25, "ankle_r": -0.25, "waist": (0.0, 0.2, 0.0)},  # knees bent
+    # knees bent: shins forward (ankles), thighs forward (hips), so the pelvis stays over the feet
+    {"knee_l": 0.5, "knee_r": 0.5, "ankle_l": -0.25, "ankle_r": -0.25, "hip_l": (0.0, -0.25, 0.0),
+     "hip_r": (0.0, -0.25, 0.0), "waist": (0.0, 0.2, 0.0)},
 ]  # fmt: skip
 
 

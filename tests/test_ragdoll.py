@@ -262,6 +262,31 @@ def test_pose_control_drives_the_standing_doll_to_the_pose(standing):
     assert np.abs(pelvis[:, 2] - doll.rest_height).max() < 0.02  # still standing
 
 
+@pytest.mark.slow
+def test_demo_keyframes_leave_the_doll_standing(standing):
+    """examples/ragdoll_demo.py's six poses, one second each, then one second back to the build
+    pose: the doll stays on its feet. (Its earlier keyframes tilted the head back with the arms up
+    and bent the knees without the hips: the centre of mass, 4.8 cm behind the middle of the feet
+    at rest, left the heels and the doll fell backwards in the fifth second.)"""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "examples" / "ragdoll_demo.py"
+    spec = importlib.util.spec_from_file_location("ragdoll_demo", path)
+    demo = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(demo)
+    model, doll, run = standing
+    per_pose = int(round(1.0 / model.dt))
+    poses = [*demo.KEYFRAMES, {}]
+    controls = np.concatenate([np.tile(ragdoll.pose_control(doll, pose), (per_pose, 1)) for pose in poses])
+    final, trajectory = run(jnp.asarray(controls, jnp.float32))
+    assert bool(dbd.is_finite(final))
+    pelvis = np.asarray(trajectory.pos[:, doll.bodies["pelvis"], 2])
+    lowest = [round(float(pelvis[k * per_pose : (k + 1) * per_pose].min()), 3) for k in range(len(poses))]
+    print(f"\ndemo keyframes: lowest pelvis height in each second {lowest}")
+    assert pelvis.min() > doll.rest_height - 0.1
+
+
 # ----------------------------------------------------------------------------------------- MJCF
 def test_shipped_mjcf_file_is_what_mjcf_xml_writes():
     assert ragdoll.ASSET.read_text() == ragdoll.mjcf_xml()
