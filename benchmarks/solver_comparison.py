@@ -791,6 +791,51 @@ def write(path: pathlib.Path, settings: dict, results: list[dict], planned: list
     path.write_text(json.dumps(summary, indent=1) + "\n")
 
 
+TABLE_VALUES = {  # the numbers each scene's table row shows, in order
+    "heavy_ball_chain": ("gap_max_mm", "energy_gain", "max_turn"),
+    "stretched_chain": ("gap_final_mm", "gap_max_mm", "energy_gain", "max_turn"),
+    "joint_grid": ("gap_max_mm", "energy_gain", "max_turn"),
+    "box_stack": ("top_drift_mm", "penetration_final_mm", "energy_gain"),
+    "box_pyramid": ("max_drift_mm", "penetration_final_mm", "energy_gain"),
+    "big_box_on_small_boxes": ("penetration_max_mm", "penetration_final_mm", "energy_gain"),
+    "friction_ramp": ("acceleration_error_pct", "penetration_final_mm", "energy_gain"),
+    "overlapping_boxes": ("push_speed", "penetration_final_mm", "energy_gain"),
+    "far_chain": ("difference_to_origin_mm", "gap_max_mm", "energy_gain"),
+    "ragdoll_pile": ("gap_max_mm", "penetration_max_mm", "penetration_final_mm", "energy_gain"),
+    "far_ragdoll_pile": ("difference_to_origin_mm", "gap_max_mm", "penetration_final_mm", "energy_gain"),
+}
+
+
+def tables(results: list[dict], dts: list[float], columns: list[tuple[str, int | None]]) -> str:
+    """A markdown table: one row per (scene, dt), one column per (solver, iterations); each cell
+    the scene's TABLE_VALUES in order ("blew up" first where the run did; "-": no result)."""
+
+    def cell(result: dict | None, scene: str) -> str:
+        if result is None:
+            return "-"
+        if "skipped" in result:
+            return "skipped"
+        if "error" in result:
+            return "error"
+        numbers = " / ".join(f"{result.get(v, float('nan')):.3g}" for v in TABLE_VALUES[scene])
+        return f"**blew up** {numbers}" if result.get("blew_up") else numbers
+
+    found = {_key(r): r for r in results}
+    head = ["scene", "values", "dt"] + [
+        f"{solver} {iterations}" if iterations else solver for solver, iterations in columns
+    ]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for scene in SCENES:
+        for dt in dts:
+            cells = [
+                cell(found.get((scene, solver, iterations, round(dt, 6))), scene) for solver, iterations in columns
+            ]
+            lines.append(
+                f"| {scene} | {', '.join(TABLE_VALUES[scene])} | 1/{round(1 / dt)} | " + " | ".join(cells) + " |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="dt 1/60, 1/30 and 2, 8 iterations only")
@@ -802,6 +847,7 @@ def main() -> None:
     parser.add_argument("--resume", action="store_true", help="keep the runs already in --out and do the rest")
     parser.add_argument("--stop-after", type=float, default=None, help="minutes: start no run after this")
     parser.add_argument("--merge", nargs="+", default=None, help="JSON files to merge into --out (no runs)")
+    parser.add_argument("--tables", action="store_true", help="print --out's results as markdown tables (no runs)")
     args = parser.parse_args()
     dts = [1 / 60, 1 / 30] if args.quick else [1 / 240, 1 / 120, 1 / 60, 1 / 30, 1 / 15]
     iteration_counts = [2, 8] if args.quick else [8, 2, 20, 1, 4]  # the order they run in
@@ -825,6 +871,14 @@ def main() -> None:
         "solvers": solvers,
         "brax": BRAX_NOTE if BRAX in solvers else None,
     }
+    if args.tables:
+        results = json.loads(out.read_text())["results"]
+        counts = sorted({r["iterations"] for r in results if r["iterations"]})
+        both = [(solver, n) for solver in ("dbd", "impulse") for n in counts] + [(BRAX, None)]
+        print(f"### Large steps: dt 1/30 and 1/15, every iteration count\n\n{tables(results, dts[-2:], both)}")
+        eight = [("dbd", 8), ("impulse", 8), (BRAX, None)]
+        print(f"### Small steps: dt 1/240 to 1/60, 8 iterations\n\n{tables(results, dts[:-2], eight)}")
+        return
     if args.merge:
         merged = {}
         for path in args.merge:  # the first result of a run wins
