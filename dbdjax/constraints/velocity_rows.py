@@ -20,13 +20,20 @@ not the increment (Catto 2005, SI [3]). One update rule serves every row:
          with s = h (h k + c), mass = s / (1 + s K), mix = 1 / (1 + s K), b = k C / (h k + c)
          (Catto's soft constraints; s = 0 makes the row release whatever it holds)
   motor  rigid with b = -target speed (SI (124)), |lambda| <= max force h (SI (126))
+  rotor  armature I_r on a joint coordinate q with J v = qdot: a flywheel of inverse mass 1 / I_r
+         on the row J v - u = 0, u = u* - lambda / I_r its speed after the impulses it gave the
+         bodies, u* = qdot at the start of the substep + h tau / I_r (a torque actuator on q).
+         SI (20) with 1 / I_r added to K: the soft update with s = I_r and b = -u*
 
 Inequality rows (contacts (42), limits (120)-(121)) clamp lambda >= 0 and bias a row that is
 not violated by C / h rather than beta C / h: the bodies may close the gap C within this substep
 but no further (speculative: a limit or contact is always in the system, so no active set
 switches on and off inside the differentiated step). Blocks of three rows with a 3x3 K are solved
 at once: the joint point (SI (48)), an angular lock (SI (60), (134), or the hinge's two rows
-(86)-(90) as the plane across its axle) and a ball joint's drive. A block's rows may be
+(86)-(90) as the plane across its axle), a ball joint's drive and a ball joint's rotor. Universal
+and gimbal joints (MuJoCo's two or three hinges on one body) have the point block, the
+universal's lock row (axis 1 on a perpendicular to axis 2 on b) and, per hinge k, limit, drive
+and rotor rows along g_k, the gradient of its angle t_k (`math.euler_angles`). A block's rows may be
 restricted to the range of a projector P (a slider's plane across its axis, SI (51)): K is then
 inverted as P K P + (1 - P), which maps range(P) to itself.
 
