@@ -731,7 +731,9 @@ class ModelBuilder:
         not one body's), unlike adding armature a a^T to the child's inertia, which is right only
         while the parent does not turn. A torque actuator (`add_torque`) on a degree of freedom
         with armature acts through that row (it accelerates bodies and rotor together, as in
-        MuJoCo); on a ball joint with armature, torque actuators are refused at finalize.
+        MuJoCo); on a ball joint with armature, torque actuators are refused at finalize. The impulse
+        solver (finalize(solver="impulse")) holds a flywheel of inertia armature to the coordinate's
+        velocity instead, one velocity row per degree of freedom (constraints/velocity_rows.py).
         """
         label, record = self._actuated_joint("add_armature", joint)
         if record.kind == FIXED:
