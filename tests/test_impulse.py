@@ -479,8 +479,27 @@ def test_armature_dof_spins_up_at_torque_over_body_plus_rotor_inertia(float64, k
     np.testing.assert_allclose(np.diff(speed), expected * model.dt, rtol=1e-3)  # uniform from the first step
 
 
+def test_ball_pendulum_with_armature_swings_at_the_period_of_body_plus_rotor_inertia():
+    """A ball joint's rotor (an isotropic flywheel on w_b - w_a, the soft rotor block) adds I_r to
+    the pendulum's moment about its pivot: T = 2 pi sqrt((I + m L^2 + I_r) / (m g L)) / AGM(1,
+    cos(amplitude / 2)). Here I_r = 0.5 kg m^2 lengthens the period by 22 %."""
+    length, radius, amplitude, rotor, dt = 1.0, 0.1, 0.05, 0.5, 1 / 60
+    b = dbd.ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
+    bob = b.add_body(pos=(length * math.sin(amplitude), 0.0, -length * math.cos(amplitude)), mass=1.0,
+                     inertia=(0.4 * radius**2,) * 3)  # fmt: skip
+    b.add_armature(b.add_ball_joint(dbd.WORLD, bob, anchor=(0, 0, 0)), rotor)
+    model = b.finalize(dt=dt, iterations=8, solver="impulse")
+    _, trajectory = rollout(model, int(8 / dt))
+    measured = np.mean(np.diff(upward_crossing_times(np.asarray(trajectory.pos[:, 0, 0]), dt)))
+    expected = exact_period(length, radius, amplitude) * math.sqrt(1 + rotor / (0.4 * radius**2 + length**2))
+    print(f"\nball pendulum with armature {rotor}: period {measured:.5f} s, expected {expected:.5f} s")
+    assert abs(measured - expected) / expected < 0.01
+
+
+@pytest.mark.slow
 def test_universal_joint_gradient_on_impulse_matches_finite_differences(float64):
-    """Through 12 steps of a universal joint with a hinge limit it reaches, a drive and armature."""
+    """Through 12 steps of a universal joint with a hinge limit, a drive and armature (slow: the
+    reverse-mode compile took 300 s on the shared 2-core machine at load 11)."""
     b = dbd.ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
     arm = b.add_body(pos=(0.2, 0.0, -0.3), mass=1.0, inertia=(0.01, 0.02, 0.03))
     joint = b.add_universal_joint(dbd.WORLD, arm, anchor=(0, 0, 0), axes=[(1, 0, 0), (0, 1, 0)],
