@@ -113,11 +113,13 @@ def spring_softness(stiffness, damping, error, h: float):
 
 
 def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper, active, softness=0.0,
-                soft=False) -> Rows:  # fmt: skip
+                soft=False, held=0.0) -> Rows:  # fmt: skip
     """Rows (R,) from their Jacobians (R, 3), bias, bounds and `active` (R,). soft: (R,) bool, the
-    rows that are spring-dampers of softness s (R,); the others are rigid. Inactive rows, and rigid
-    rows that move nothing (K = 0), get mass = mix = 0: they never move."""
+    rows that are spring-dampers of softness s (R,); the others are rigid. held: (R,) what a point
+    hold takes off K (`point_hold`; 0 for none). Inactive rows, and rigid rows that move nothing
+    (K = 0), get mass = mix = 0: they never move."""
     inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, math.dot(linear, linear))
+    inverse_mass = jnp.maximum(inverse_mass - held, 0.0)
     bias, lower, upper = (jnp.broadcast_to(jnp.asarray(x, inverse_mass.dtype), inverse_mass.shape)
                           for x in (bias, lower, upper))  # fmt: skip
     solvable = active & (inverse_mass > 0.0)
@@ -129,10 +131,11 @@ def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper
 
 
 def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=None, softness=None,
-          bound=jnp.inf) -> Block:  # fmt: skip
+          bound=jnp.inf, held=None) -> Block:  # fmt: skip
     """A block of three rows (3, 3) with K = J M^-1 J^T in full (SI (48), (60)). projector: P (3, 3)
     when the rows span only range(P) (rows and bias are already in it), None for all three.
-    softness: s of a soft block (a three-axis spring-damper), None for a rigid one."""
+    softness: s of a soft block (a three-axis spring-damper), None for a rigid one. held: (3, 3)
+    what a point hold takes off K (`point_hold`), None for none."""
     turn_a = math.matvec(pair.inv_inertia_a, angular_a)
     turn_b = math.matvec(pair.inv_inertia_b, angular_b)
     # K_ij = (1/m_a + 1/m_b) l_i . l_j + g_a,i . I_a^-1 g_a,j + g_b,i . I_b^-1 g_b,j
@@ -141,6 +144,8 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
         + _row_products(angular_a, turn_a)
         + _row_products(angular_b, turn_b)
     )
+    if held is not None:
+        coupling = coupling - held
     eye = jnp.eye(3, dtype=coupling.dtype)
     if softness is None:
         if projector is not None:
@@ -218,6 +223,30 @@ def _warm(pair: BodyPair, pieces) -> tuple[jnp.ndarray, jnp.ndarray]:
     return pair.displacements()
 
 
+def point_hold(pair: BodyPair, point: Block, linear, angular_a, angular_b):
+    """The point impulses that hold a joint's point while rows (R, 3) push, and what that takes
+    off their K: (hold (R, 3), held (R, R)).
+
+    A row's impulse d lambda changes the relative velocity of the joint points by s d lambda, with
+    s = J_point M^-1 J_row^T (R, 3); the point block answers with the impulse hold d lambda, hold =
+    -K_point^-1 s (its `mass`), given together with the row's. The row then moves J v by
+    (K - s^T K_point^-1 s) d lambda: the Schur complement, the joint-space response with the
+    point held, so that a rotor row on a body whose own inertia is small against m r^2 about the
+    joint (a pendulum bob, a foot) converges in a few sweeps instead of spinning the body about
+    its centre and leaving the point block to turn it back (the detour rows.PointHold describes
+    for the DBD solver; here the sweeps converged too slowly: a ball pendulum with armature swung
+    13 % slow at 8 iterations without the hold)."""
+    turn_a = math.matvec(pair.inv_inertia_a, angular_a)
+    turn_b = math.matvec(pair.inv_inertia_b, angular_b)
+    coupling = (
+        (pair.inv_mass_a + pair.inv_mass_b) * _row_products(linear, point.linear)
+        + _row_products(turn_a, point.angular_a)
+        + _row_products(turn_b, point.angular_b)
+    )  # (R, 3): s of each row
+    hold = -jnp.sum(coupling[:, None, :] * point.mass[None], axis=-1)  # -K_point^-1 s (mass is symmetric)
+    return hold, -_row_products(coupling, hold)
+
+
 # ---------------------------------------------------------------------------------- joints
 
 # Impulses of one joint: the ball drive block, the scalar rows, the angular lock, the point and the
@@ -244,17 +273,22 @@ _SCALAR_ROWS = (
     *(("euler_limited", EULER_LOWER + k) for k in range(3)), *(("euler_limited", EULER_UPPER + k) for k in range(3)),
 )  # fmt: skip
 _SOFT = np.isin(np.arange(NUM_SCALARS), [HINGE_DRIVE, *range(EULER_DRIVE, EULER_DRIVE + 3), *range(ROTOR, ROTOR + 3)])
+_HELD = np.arange(ROTOR, ROTOR + 3)  # the scalar rows that push with the joint point held (`point_hold`)
 
 
 class JointRows(NamedTuple):
     """Every row of one joint: ball drive (Block), NUM_SCALARS scalar rows (Rows), angular lock,
-    point, ball rotor (Block)."""
+    point, ball rotor (Block), and the point impulse per unit impulse of the rows that push with
+    the point held (`point_hold`): scalar_hold (NUM_SCALARS, 3), rotor_hold (3, 3), zero for the
+    others."""
 
     drive: Block
     scalars: Rows
     lock: Block
     point: Block
     rotor: Block
+    scalar_hold: jnp.ndarray
+    rotor_hold: jnp.ndarray
 
 
 def _scalar_rows_in_use(rows: frozenset[str]) -> list[int]:
@@ -283,6 +317,20 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     quat_a, quat_b = pair.current_quats()
     inf = jnp.asarray(jnp.inf, dtype)
     at_start = pair._replace(vel_a=start[0], vel_b=start[1], ang_vel_a=start[2], ang_vel_b=start[3])
+
+    # Point: C = p_b - p_a (SI (45), (127)) as one block with the 3x3 K (48). A slider keeps the part
+    # across its axis (SI (51)), a planar joint the part along its normal, both acting level with p_b.
+    delta, arm_a, arm_b = joints.joint_points(joint, flag, pair, quat_a, quat_b)  # delta = p_a - p_b
+    projector = None
+    if "slider" in rows or "planar" in rows:
+        axis = math.quat_rotate(quat_a, joint.local_axis_a)
+        along_axis = axis[:, None] * axis[None, :]
+        projector = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
+        arm_a = arm_a - math.matvec(eye - projector, delta)
+        delta = math.matvec(projector, delta)
+    rows_p = eye if projector is None else projector
+    point = block(pair, rows_p, math.cross(arm_a[None], rows_p), math.cross(arm_b[None], rows_p),
+                  baumgarte_bias(-delta, beta, h), True, projector=projector)  # fmt: skip
 
     # Ball drive (DBD 9 as a soft block): the rotation vector of E = X T^-1 in world axes, pulled to
     # zero by a three-axis spring-damper, |lambda| <= max torque h.
@@ -397,17 +445,25 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
             spin_up = h * target.torque[k] / jnp.where(some, armature, 1.0)
             speed = _relative_speed(at_start, *rotor) + jnp.where(some, spin_up, 0.0)  # u*
             scalar[ROTOR + k] = (*rotor, -speed, -inf, inf, active & some, armature)
+    # The rotor rows push with the joint point held (`point_hold`): their K is the joint-space one.
+    rotor_hold = jnp.zeros((3, 3), dtype)
     if "rotor_ball" in rows:
         spin = start[3] - start[2]  # u* = w_b - w_a at the start (torques on a ball with armature are refused)
+        rotor_hold, held = point_hold(pair, point, jnp.zeros((3, 3), dtype), eye, eye)
         rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, -spin, flag.rotor_ball & (joint.armature[0] > 0.0),
-                      softness=joint.armature[0])  # fmt: skip
+                      softness=joint.armature[0], held=held)  # fmt: skip
     else:
         rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
     linear, angular_a, angular_b = (jnp.stack([entry[k] for entry in scalar]) for k in range(3))
     bias, lower, upper, softness = (jnp.stack([jnp.asarray(entry[k], dtype) for entry in scalar]) for k in (3, 4, 5, 7))
     active = jnp.stack([jnp.asarray(entry[6], bool) for entry in scalar])
-    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT)
+    scalar_hold, held = jnp.zeros((NUM_SCALARS, 3), dtype), 0.0
+    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
+        hold, held = point_hold(pair, point, linear[_HELD], angular_a[_HELD], angular_b[_HELD])
+        scalar_hold = scalar_hold.at[_HELD].set(hold)
+        held = jnp.zeros(NUM_SCALARS, dtype).at[_HELD].set(jnp.diagonal(held))
+    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT, held)
 
     # Angular lock, a block over the plane across the axle (hinge, planar: SI (86)-(90), the error
     # the angle between the axes about the axis turning a's toward b's) or over all three axes
@@ -427,21 +483,7 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     else:
         lock = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
-    # Point: C = p_b - p_a (SI (45), (127)) as one block with the 3x3 K (48). A slider keeps the part
-    # across its axis (SI (51)), a planar joint the part along its normal, both acting level with p_b.
-    delta, arm_a, arm_b = joints.joint_points(joint, flag, pair, quat_a, quat_b)  # delta = p_a - p_b
-    projector = None
-    if "slider" in rows or "planar" in rows:
-        axis = math.quat_rotate(quat_a, joint.local_axis_a)
-        along_axis = axis[:, None] * axis[None, :]
-        projector = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
-        arm_a = arm_a - math.matvec(eye - projector, delta)
-        delta = math.matvec(projector, delta)
-    rows_p = eye if projector is None else projector
-    point = block(pair, rows_p, math.cross(arm_a[None], rows_p), math.cross(arm_b[None], rows_p),
-                  baumgarte_bias(-delta, beta, h), True, projector=projector)  # fmt: skip
-
-    result = JointRows(drive, scalars, lock, point, rotor)
+    result = JointRows(drive, scalars, lock, point, rotor, scalar_hold, rotor_hold)
     dv, dw = _warm(pair, [(drive, impulses[DRIVE_BLOCK]), (scalars, impulses[SCALARS]), (lock, impulses[LOCK]),
                           (point, impulses[POINT]), (rotor, impulses[ROTOR_BLOCK])])  # fmt: skip
     return result, impulses, dv, dw
@@ -451,16 +493,29 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     """One pass over a joint's rows: rotors, drives and motors first, then limits, the angular lock
     and the point last (so that the joint gap has the last word, as in the DBD solver)."""
     pair = BodyPair.of(bodies)
+    point = joint_rows.point
+
+    def held(pair, point_impulse, step, hold):  # the point impulse that comes with a held row's step
+        push = jnp.sum(step[:, None] * hold, axis=0)
+        return _push(pair, point.linear, point.turn_a, point.turn_b, push), point_impulse + push
+
+    point_impulse = impulses[POINT]
     if "rotor_ball" in rows:
         pair, value = solve_block(pair, joint_rows.rotor, impulses[ROTOR_BLOCK])
+        pair, point_impulse = held(pair, point_impulse, value - impulses[ROTOR_BLOCK], joint_rows.rotor_hold)
         impulses = impulses.at[ROTOR_BLOCK].set(value)
     if "ball_drive" in rows:
         pair, value = solve_block(pair, joint_rows.drive, impulses[DRIVE_BLOCK])
         impulses = impulses.at[DRIVE_BLOCK].set(value)
     scalars = impulses[SCALARS]
     for i in _scalar_rows_in_use(rows):
+        before = scalars[i]
         pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
-    impulses = impulses.at[SCALARS].set(scalars)
+        if i in _HELD:
+            pair, point_impulse = held(
+                pair, point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[i][None]
+            )
+    impulses = impulses.at[SCALARS].set(scalars).at[POINT].set(point_impulse)
     if "rotation_lock" in rows:
         pair, value = solve_block(pair, joint_rows.lock, impulses[LOCK])
         impulses = impulses.at[LOCK].set(value)
