@@ -303,7 +303,7 @@ def _joint_coordinates(model, state):
     return jnp.concatenate([euler[j, : dofs[k]] if k in dofs else single[j, None] for j, k in enumerate(kind)])
 
 
-def _gap_to_mujoco(name: str, dt: float) -> float:
+def _gap_to_mujoco(name: str, dt: float, solver: str = "dbd") -> float:
     """max over 1 s of |q - q_mujoco| (the orientation angle for the ball), both at step dt."""
     body, extra, control, _ = SCENES[name]
     xml = f'<mujoco><option timestep="{dt}"/><worldbody>{body}</worldbody>{extra}</mujoco>'
@@ -318,7 +318,7 @@ def _gap_to_mujoco(name: str, dt: float) -> float:
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, d.ximat[1])
         orientations.append(quat)
-    model = dbd.load_mjcf(xml, iterations=8)
+    model = dbd.load_mjcf(xml, iterations=8, solver=solver)
     controls = jnp.broadcast_to(jnp.asarray(control, jnp.float64), (steps, len(control)))
     _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), controls)
     if name == "ball":

@@ -54,7 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import math
+from dbdjax import integrator, math
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import joints, links, multibody
 from dbdjax.constraints import rows as row
@@ -418,37 +418,59 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
 
     # Armature (MuJoCo's rotor inertia I_r on a joint coordinate q, kinetic energy 1/2 I_r qdot^2):
     # a flywheel of inertia I_r held to q by the velocity row J v - u = 0, J v = qdot (the DoF's
-    # row: the axle, the slide, g_k). The flywheel turns at u_0 = J v at the start of the substep
-    # (it moved with q), a torque actuator on q spins it up to u* = u_0 + h tau / I_r (SI (12);
-    # integrator.actuator_wrenches leaves those torques to this row, as the DBD solver's rotor row
-    # does), and an impulse lambda on the bodies takes lambda from the flywheel: u = u* - lambda / I_r.
+    # row: the axle, the slide, g_k). A torque actuator on q spins the flywheel up by h tau / I_r
+    # (SI (12); integrator.actuator_wrenches leaves those torques to this row, as the DBD solver's
+    # rotor row does), and an impulse lambda on the bodies takes lambda from it: u = u* - lambda / I_r.
     # So the row is J v + b + lambda / I_r = 0 with b = -u*, whose sequential-impulse update
     # (SI (20)-(23) with the flywheel's inverse mass 1 / I_r added to K) is the soft row's with
     # s = I_r: mass = 1 / (K + 1 / I_r), mix = 1 / (1 + I_r K). It is the velocity form of the
     # DBD solver's rotor row (a spring with k h^2 = I_r toward where the rotor carries q). A ball's
     # flywheel is isotropic: J = w_b - w_a in world axes, a soft block of three rows.
-    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
+    # The flywheel keeps its own speed from one substep to the next: what the last solve left it,
+    # J(X^(t-1)) V^t with the rows of the last substep's pose X^(t-1) = X^t - h V^t (exactly, in
+    # `solvers.impulse.integrate`), not J(X^t) V^t. The difference, h dJ/dt v, is the flywheel's
+    # share of the coordinate's acceleration when J turns (a gimbal's middle axis as hinge 1
+    # turns): taking J(X^t) V^t would give it that speed for free, with no reaction on the bodies
+    # (the middle hinge of a gimbal with armature drifted 0.38 rad from MuJoCo's in 1 s).
+    def rotor_jacobians(at: BodyPair):  # the three rotor rows' (linear, angular_a, angular_b) at a pose
+        result = []
+        if "rotor_euler" in rows:
+            _, gradients = joints._euler_angles(joint, flag, at, rows)
+        if "rotor_hinge" in rows:
+            _, axle_here = joints.hinge_angle(joint, at)
+        if "rotor_slider" in rows:
+            _, slide_here, arm_a_here, arm_b_here = joints.slider_travel(joint, flag, at)
+            along = (slide_here, math.cross(arm_a_here, slide_here), math.cross(arm_b_here, slide_here))
         for k in range(3):
-            rotor = (zero3, zero3, zero3)
-            active = jnp.asarray(False)
-            if "rotor_euler" in rows:
-                rotor, active = (zero3, directions[k], directions[k]), flag.rotor_euler[k]
+            jacobian = (zero3, gradients[k], gradients[k]) if "rotor_euler" in rows else (zero3, zero3, zero3)
             if k == 0 and "rotor_hinge" in rows:
-                rotor = jax.tree.map(lambda x, y: jnp.where(flag.rotor_hinge, y, x), rotor, (zero3, axle, axle))
-                active = active | flag.rotor_hinge
+                jacobian = jax.tree.map(lambda x, y: jnp.where(flag.rotor_hinge, y, x), jacobian, (zero3, axle_here,
+                                        axle_here))  # fmt: skip
             if k == 0 and "rotor_slider" in rows:
-                along = (slide, torque_a, torque_b)
-                rotor = jax.tree.map(lambda x, y: jnp.where(flag.rotor_slider, y, x), rotor, along)
-                active = active | flag.rotor_slider
+                jacobian = jax.tree.map(lambda x, y: jnp.where(flag.rotor_slider, y, x), jacobian, along)
+            result.append(jacobian)
+        return result
+
+    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
+        before = pair._replace(origin_a=pair.origin_a - h * start[0], origin_b=pair.origin_b - h * start[1],
+                               quat_a=integrator.displaced_quat(pair.quat_a, -h * start[2]),
+                               quat_b=integrator.displaced_quat(pair.quat_b, -h * start[3]))  # fmt: skip
+        for k, (now, then) in enumerate(zip(rotor_jacobians(pair), rotor_jacobians(before), strict=True)):
+            active = flag.rotor_euler[k] if "rotor_euler" in rows else jnp.asarray(False)
+            if k == 0:
+                active = active | flag.rotor_hinge | flag.rotor_slider
             armature = joint.armature[k]
             some = armature > 0.0
             spin_up = h * target.torque[k] / jnp.where(some, armature, 1.0)
-            speed = _relative_speed(at_start, *rotor) + jnp.where(some, spin_up, 0.0)  # u*
-            scalar[ROTOR + k] = (*rotor, -speed, -inf, inf, active & some, armature)
+            speed = _relative_speed(at_start, *then) + jnp.where(some, spin_up, 0.0)  # u*
+            scalar[ROTOR + k] = (*now, -speed, -inf, inf, active & some, armature)
     # The rotor rows push with the joint point held (`point_hold`): their K is the joint-space one.
     rotor_hold = jnp.zeros((3, 3), dtype)
     if "rotor_ball" in rows:
-        spin = start[3] - start[2]  # u* = w_b - w_a at the start (torques on a ball with armature are refused)
+        # MuJoCo's ball velocity is w_b - w_a in b's frame, so the flywheel keeps its speed in b's
+        # frame: u* is the start's w_b - w_a turned with b over the last substep (by h w_b), as
+        # above. Torques on a ball joint with armature are refused at finalize.
+        spin = math.quat_rotate(math.quat_exp(h * start[3]), start[3] - start[2])
         rotor_hold, held = point_hold(pair, point, jnp.zeros((3, 3), dtype), eye, eye)
         rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, -spin, flag.rotor_ball & (joint.armature[0] > 0.0),
                       softness=joint.armature[0], held=held)  # fmt: skip
