@@ -540,3 +540,46 @@ def test_brax_humanoid_and_ant_roll_out_200_steps_on_impulse(name, largest_gap):
     print(f"\n{name} on impulse, 200 steps at dt {model.dt}: joint gaps largest {gaps.max() * 1e3:.2f} mm, "
           f"median {np.median(gaps) * 1e3:.3f} mm")  # fmt: skip
     assert gaps.max() < largest_gap
+
+
+@pytest.mark.slow
+def test_humanoid_joint_angles_on_impulse_follow_mujoco_over_0_2_s():
+    """The humanoid at dt = 1 ms under uniform random control (seed 0) for 0.2 s: every hinge angle
+    (the universal and gimbal joints' included) on the impulse solver against MuJoCo's qpos at the
+    same dt and control, and against the DBD solver's (printed). Measured: impulse vs MuJoCo at
+    most 0.056 rad over the 0.2 s (the knees swing 0.9 rad); the DBD solver's knees went twice as
+    far as MuJoCo's (its armature rows under-apply the rotor on light links: a ball pendulum with
+    I_r = 0.5 swung with a period of 2.04 s at 8 iterations, 2.46 s analytic, 2.01 s without it)."""
+    mujoco = pytest.importorskip("mujoco")
+    dt, steps = 1e-3, 200
+    path = ASSETS / "humanoid.xml"
+    angles = {}
+    for solver in ("impulse", "dbd"):
+        model = dbd.load_mjcf(path, solver=solver, dt=dt)
+        low, high = model.control_range[:, 0], model.control_range[:, 1]
+        controls = np.random.default_rng(0).uniform(low, high, size=(steps, model.num_controls))
+        _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), jnp.asarray(controls, jnp.float32))
+        angles[solver] = hinge_angles(model, trajectory.quat)
+    m = mujoco.MjModel.from_xml_path(str(path))
+    m.opt.timestep = dt
+    d = mujoco.MjData(m)
+    qpos = []
+    for control in controls:
+        d.ctrl[:] = control
+        mujoco.mj_step(m, d)
+        qpos.append(d.qpos.copy())
+    qpos = np.array(qpos)
+    reference, mask = np.zeros_like(angles["dbd"]), np.zeros(angles["dbd"].shape[1:], bool)
+    for j, name in enumerate(model.structure.joint_names):
+        for k, hinge in enumerate(name.split("+")):
+            reference[:, j, k] = qpos[:, m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, hinge)]]
+            mask[j, k] = True
+    assert mask.sum() == 17  # every hinge of the humanoid, the free root aside
+    to_mujoco = np.abs(angles["impulse"] - reference)[:, mask]
+    to_dbd = np.abs(angles["impulse"] - angles["dbd"])[:, mask]
+    dbd_to_mujoco = np.abs(angles["dbd"] - reference)[:, mask]
+    travel = np.abs(reference - reference[0])[:, mask]
+    print(f"\nhumanoid, 0.2 s at dt 1 ms: MuJoCo's angles travel up to {travel.max():.3f} rad; largest difference "
+          f"impulse-MuJoCo {to_mujoco.max():.3f} rad, impulse-DBD {to_dbd.max():.3f} rad, DBD-MuJoCo "
+          f"{dbd_to_mujoco.max():.3f} rad")  # fmt: skip
+    assert to_mujoco.max() < 0.08
