@@ -731,7 +731,9 @@ class ModelBuilder:
         not one body's), unlike adding armature a a^T to the child's inertia, which is right only
         while the parent does not turn. A torque actuator (`add_torque`) on a degree of freedom
         with armature acts through that row (it accelerates bodies and rotor together, as in
-        MuJoCo); on a ball joint with armature, torque actuators are refused at finalize.
+        MuJoCo); on a ball joint with armature, torque actuators are refused at finalize. The impulse
+        solver (finalize(solver="impulse")) holds a flywheel of inertia armature to the coordinate's
+        velocity instead, one velocity row per degree of freedom (constraints/velocity_rows.py).
         """
         label, record = self._actuated_joint("add_armature", joint)
         if record.kind == FIXED:
@@ -1059,9 +1061,13 @@ class ModelBuilder:
         (1e-6 .. 1e-4) makes contact a stiff spring, whose gradients are smoother for trajectory
         optimisation. restitution_iterations: sweeps of the velocity pass (restitution).
         solver: "dbd" (DBD Algorithm 1, positions) or "impulse" (SI: sequential impulses on the
-        velocities with Baumgarte bias, semi-implicit Euler; solvers/impulse.py). baumgarte: beta
-        of SI (17) for the impulse solver, the share of a position error its bias removes per
-        substep (contacts, links, and joints that were not given their own).
+        velocities with Baumgarte bias, semi-implicit Euler; solvers/impulse.py). The impulse
+        solver has velocity rows for every joint kind (universal and gimbal joints: the point,
+        the universal's lock, per-hinge limits and drives), motors, drives, torques and armature
+        (a flywheel row per degree of freedom, constraints/velocity_rows.py); it refuses IK
+        targets (ValueError). baumgarte: beta of SI (17) for the impulse solver, the share of a
+        position error its bias removes per substep (contacts, links, and joints that were not
+        given their own).
         initial_guess: where each substep's sweeps start. "zero" (default): dX = 0 as in DBD Algorithm 1;
           "tree": the exact solution of the linearised point constraints of the joint tree
           (solvers/tree.py), which long chains need to hold their tension.
@@ -1094,18 +1100,12 @@ class ModelBuilder:
         return self._model(options)
 
     def _check_impulse_support(self) -> None:
-        """Refuse, naming the element, what the impulse solver has no velocity rows for."""
+        """Refuse, naming the element, what the impulse solver has no velocity rows for: IK targets.
+        (Every joint kind, limit, drive, motor, torque and armature has its rows in
+        constraints/velocity_rows.py.)"""
         if self._ik_targets:
             raise ValueError(f"finalize: IK target 0 (on body {self._ik_targets[0].body}): the impulse solver has no "
                              "IK target constraint; use solver='dbd'")  # fmt: skip
-        for index, joint in enumerate(self._joints):
-            label = f"{JOINT_KIND_NAMES[joint.kind]} joint {index} ({joint.name!r})"
-            if joint.kind in (UNIVERSAL, GIMBAL):
-                raise ValueError(f"finalize: {label}: the impulse solver has no velocity rows for universal or gimbal "
-                                 "joints; use solver='dbd'")  # fmt: skip
-            if np.any(joint.armature > 0.0):
-                raise ValueError(f"finalize: {label} has armature: the impulse solver has no rotor rows; use "
-                                 "solver='dbd', or leave the armature out")  # fmt: skip
 
     def _resolve_bodies(self) -> tuple[list[_Body], list[tuple[np.ndarray, np.ndarray]]]:
         """Bodies with every mass and inertia filled in, and each shape's pose in its body's frame.

@@ -75,25 +75,8 @@ def builder_with_two_bodies():
         (lambda b: b.finalize(substeps=1.5), r"finalize: substeps must be a positive integer"),
         (lambda b: b.finalize(solver="magic"), r"finalize: unknown solver 'magic'"),
         (
-            lambda b: (
-                b.add_universal_joint(0, 1, (0, 0, 0), [(0, 0, 1), (0, 1, 0)], name="hip"),
-                b.finalize(solver="impulse"),
-            ),
-            r"finalize: universal joint 0 \('hip'\): the impulse solver has no velocity rows for universal",
-        ),
-        (
-            lambda b: (
-                b.add_gimbal_joint(0, 1, (0, 0, 0), [(0, 0, 1), (0, 1, 0), (1, 0, 0)]),
-                b.finalize(solver="impulse"),
-            ),
-            r"finalize: gimbal joint 0 \('gimbal joint 0'\): the impulse solver has no velocity rows",
-        ),
-        (
-            lambda b: (
-                b.add_armature(b.add_hinge_joint(0, 1, (0, 0, 0), (0, 1, 0), name="knee"), 0.1),
-                b.finalize(solver="impulse"),
-            ),
-            r"finalize: hinge joint 0 \('knee'\) has armature: the impulse solver has no rotor rows",
+            lambda b: (b.add_ik_target(1, (0, 0, 0)), b.finalize(solver="impulse")),
+            r"finalize: IK target 0 \(on body 1\): the impulse solver has no IK target constraint",
         ),
     ],
 )

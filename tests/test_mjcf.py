@@ -211,6 +211,14 @@ SCENES = {
         [],
         1.26e-2,
     ),
+    # a heavy rotor on a ball joint (MuJoCo's armature on its three dofs, in the child's frame)
+    "ball_armature": (
+        """<body pos="0 0 2" euler="35 25 10"><joint name="b" type="ball" armature="0.5"/>
+        <geom type="box" pos="0.02 0.03 -0.3" size="0.05 0.1 0.25"/></body>""",
+        "",
+        [],
+        2.6e-2,
+    ),
     # joint stiffness + damping (the drive row) and a motor (add_torque) on a hinge
     "driven": (
         """<body pos="0 0 2" euler="0 50 0"><joint name="h" axis="0 1 0" stiffness="3" damping="0.2"/>
@@ -303,7 +311,7 @@ def _joint_coordinates(model, state):
     return jnp.concatenate([euler[j, : dofs[k]] if k in dofs else single[j, None] for j, k in enumerate(kind)])
 
 
-def _gap_to_mujoco(name: str, dt: float) -> float:
+def _gap_to_mujoco(name: str, dt: float, solver: str = "dbd") -> float:
     """max over 1 s of |q - q_mujoco| (the orientation angle for the ball), both at step dt."""
     body, extra, control, _ = SCENES[name]
     xml = f'<mujoco><option timestep="{dt}"/><worldbody>{body}</worldbody>{extra}</mujoco>'
@@ -318,10 +326,10 @@ def _gap_to_mujoco(name: str, dt: float) -> float:
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, d.ximat[1])
         orientations.append(quat)
-    model = dbd.load_mjcf(xml, iterations=8)
+    model = dbd.load_mjcf(xml, iterations=8, solver=solver)
     controls = jnp.broadcast_to(jnp.asarray(control, jnp.float64), (steps, len(control)))
     _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), controls)
-    if name == "ball":
+    if name.startswith("ball"):
         cosine = np.abs(np.sum(np.asarray(trajectory.quat[:, 0]) * np.array(orientations), axis=-1))
         return float(np.max(2.0 * np.arccos(np.clip(cosine, 0.0, 1.0))))
     ours = np.unwrap(np.asarray(jax.vmap(lambda s: _joint_coordinates(model, s))(trajectory)), axis=0)
@@ -333,8 +341,29 @@ def test_chain_follows_mujoco_within_the_measured_first_order_gap(float64, name)
     assert _gap_to_mujoco(name, 1e-3) < SCENES[name][3]
 
 
+# The impulse solver on the scenes with universal and gimbal joints, springs, motors and armature: the
+# largest |q - q_mujoco| over 1 s at dt = 1 ms, measured (the DBD solver's bounds are in SCENES).
+IMPULSE_GAPS = {"universal": 6.5e-4, "gimbal_driven": 1.05e-2, "universal_chain": 3.0e-3, "gimbal_armature": 3.4e-3,
+                "slide_armature": 2.3e-3, "ball_armature": 4.2e-3}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", list(IMPULSE_GAPS))
+def test_impulse_solver_follows_mujoco_on_universal_gimbal_and_armature_chains(float64, name):
+    assert _gap_to_mujoco(name, 1e-3, solver="impulse") < IMPULSE_GAPS[name]
+
+
+# The DBD solver's gap on the ball with armature went 0.0205 -> 0.0177 rad from dt 1e-3 to 5e-4 (the
+# impulse solver's: 3.3 mrad at 1e-3), and its ball pendulum with armature 0.5 swung with a period of
+# 2.04 s at 8 iterations (2.46 s analytic, 2.01 s without armature). Likely cause, not yet checked:
+# its rotor rows step with the row's own effective mass (rows.PointHold), which on a body whose own
+# inertia is small against m r^2 about the joint leaves most of the armature unapplied.
+_DBD_ROTOR_SHORTFALL = pytest.mark.xfail(strict=True, reason="DBD rotor rows under-apply armature on light links")
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(SCENES))
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=_DBD_ROTOR_SHORTFALL) if n == "ball_armature" else n for n in SCENES]
+)
 def test_gap_to_mujoco_halves_with_the_timestep(float64, name):
     # a modelling error would stay as dt shrinks; the integrators' O(dt) difference halves
     assert 0.4 < _gap_to_mujoco(name, 5e-4) / _gap_to_mujoco(name, 1e-3) < 0.6

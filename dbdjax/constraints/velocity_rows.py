@@ -20,13 +20,20 @@ not the increment (Catto 2005, SI [3]). One update rule serves every row:
          with s = h (h k + c), mass = s / (1 + s K), mix = 1 / (1 + s K), b = k C / (h k + c)
          (Catto's soft constraints; s = 0 makes the row release whatever it holds)
   motor  rigid with b = -target speed (SI (124)), |lambda| <= max force h (SI (126))
+  rotor  armature I_r on a joint coordinate q with J v = qdot: a flywheel of inverse mass 1 / I_r
+         on the row J v - u = 0, u = u* - lambda / I_r its speed after the impulses it gave the
+         bodies, u* = qdot at the start of the substep + h tau / I_r (a torque actuator on q).
+         SI (20) with 1 / I_r added to K: the soft update with s = I_r and b = -u*
 
 Inequality rows (contacts (42), limits (120)-(121)) clamp lambda >= 0 and bias a row that is
 not violated by C / h rather than beta C / h: the bodies may close the gap C within this substep
 but no further (speculative: a limit or contact is always in the system, so no active set
 switches on and off inside the differentiated step). Blocks of three rows with a 3x3 K are solved
 at once: the joint point (SI (48)), an angular lock (SI (60), (134), or the hinge's two rows
-(86)-(90) as the plane across its axle) and a ball joint's drive. A block's rows may be
+(86)-(90) as the plane across its axle), a ball joint's drive and a ball joint's rotor. Universal
+and gimbal joints (MuJoCo's two or three hinges on one body) have the point block, the
+universal's lock row (axis 1 on a perpendicular to axis 2 on b) and, per hinge k, limit, drive
+and rotor rows along g_k, the gradient of its angle t_k (`math.euler_angles`). A block's rows may be
 restricted to the range of a projector P (a slider's plane across its axis, SI (51)): K is then
 inverted as P K P + (1 - P), which maps range(P) to itself.
 
@@ -47,12 +54,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import math
+from dbdjax import integrator, math
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import joints, links, multibody
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
-from dbdjax.model import Distances, Joints, Model, Springs
+from dbdjax.model import Distances, Joints, Model, Springs, State, with_world_row
 
 # ------------------------------------------------------------------------------------ rows
 
@@ -106,11 +113,13 @@ def spring_softness(stiffness, damping, error, h: float):
 
 
 def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper, active, softness=0.0,
-                soft=False) -> Rows:  # fmt: skip
+                soft=False, held=0.0) -> Rows:  # fmt: skip
     """Rows (R,) from their Jacobians (R, 3), bias, bounds and `active` (R,). soft: (R,) bool, the
-    rows that are spring-dampers of softness s (R,); the others are rigid. Inactive rows, and rigid
-    rows that move nothing (K = 0), get mass = mix = 0: they never move."""
+    rows that are spring-dampers of softness s (R,); the others are rigid. held: (R,) what a point
+    hold takes off K (`point_hold`; 0 for none). Inactive rows, and rigid rows that move nothing
+    (K = 0), get mass = mix = 0: they never move."""
     inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, math.dot(linear, linear))
+    inverse_mass = jnp.maximum(inverse_mass - held, 0.0)
     bias, lower, upper = (jnp.broadcast_to(jnp.asarray(x, inverse_mass.dtype), inverse_mass.shape)
                           for x in (bias, lower, upper))  # fmt: skip
     solvable = active & (inverse_mass > 0.0)
@@ -122,10 +131,11 @@ def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper
 
 
 def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=None, softness=None,
-          bound=jnp.inf) -> Block:  # fmt: skip
+          bound=jnp.inf, held=None) -> Block:  # fmt: skip
     """A block of three rows (3, 3) with K = J M^-1 J^T in full (SI (48), (60)). projector: P (3, 3)
     when the rows span only range(P) (rows and bias are already in it), None for all three.
-    softness: s of a soft block (a three-axis spring-damper), None for a rigid one."""
+    softness: s of a soft block (a three-axis spring-damper), None for a rigid one. held: (3, 3)
+    what a point hold takes off K (`point_hold`), None for none."""
     turn_a = math.matvec(pair.inv_inertia_a, angular_a)
     turn_b = math.matvec(pair.inv_inertia_b, angular_b)
     # K_ij = (1/m_a + 1/m_b) l_i . l_j + g_a,i . I_a^-1 g_a,j + g_b,i . I_b^-1 g_b,j
@@ -134,6 +144,8 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
         + _row_products(angular_a, turn_a)
         + _row_products(angular_b, turn_b)
     )
+    if held is not None:
+        coupling = coupling - held
     eye = jnp.eye(3, dtype=coupling.dtype)
     if softness is None:
         if projector is not None:
@@ -211,42 +223,92 @@ def _warm(pair: BodyPair, pieces) -> tuple[jnp.ndarray, jnp.ndarray]:
     return pair.displacements()
 
 
+def point_hold(pair: BodyPair, point: Block, linear, angular_a, angular_b):
+    """The point impulses that hold a joint's point while rows (R, 3) push, and what that takes
+    off their K: (hold (R, 3), held (R, R)).
+
+    A row's impulse d lambda changes the relative velocity of the joint points by s d lambda, with
+    s = J_point M^-1 J_row^T (R, 3); the point block answers with the impulse hold d lambda, hold =
+    -K_point^-1 s (its `mass`), given together with the row's. The row then moves J v by
+    (K - s^T K_point^-1 s) d lambda: the Schur complement, the joint-space response with the
+    point held, so that a rotor row on a body whose own inertia is small against m r^2 about the
+    joint (a pendulum bob, a foot) converges in a few sweeps instead of spinning the body about
+    its centre and leaving the point block to turn it back (the detour rows.PointHold describes
+    for the DBD solver; here the sweeps converged too slowly: a ball pendulum with armature swung
+    13 % slow at 8 iterations without the hold)."""
+    turn_a = math.matvec(pair.inv_inertia_a, angular_a)
+    turn_b = math.matvec(pair.inv_inertia_b, angular_b)
+    coupling = (
+        (pair.inv_mass_a + pair.inv_mass_b) * _row_products(linear, point.linear)
+        + _row_products(turn_a, point.angular_a)
+        + _row_products(turn_b, point.angular_b)
+    )  # (R, 3): s of each row
+    hold = -jnp.sum(coupling[:, None, :] * point.mass[None], axis=-1)  # -K_point^-1 s (mass is symmetric)
+    return hold, -_row_products(coupling, hold)
+
+
 # ---------------------------------------------------------------------------------- joints
 
-# Impulses of one joint: the ball drive block, the scalar rows, the angular lock and the point.
+# Impulses of one joint: the ball drive block, the scalar rows, the angular lock, the point and the
+# ball rotor block. Scalar rows: the hinge's and slider's (0-6), the universal lock (7), and per
+# hinge k of a universal or gimbal joint its lower and upper limit and its drive (8 + k, 11 + k,
+# 14 + k); the rotor of degree of freedom k (a hinge's, planar's or slider's: k = 0) is 17 + k.
 DRIVE_BLOCK = slice(0, 3)
 HINGE_DRIVE, MOTOR, ANGLE_LOWER, ANGLE_UPPER, CONE, TRAVEL_LOWER, TRAVEL_UPPER = range(7)
-SCALARS = slice(3, 10)
-LOCK = slice(10, 13)
-POINT = slice(13, 16)
-JOINT_IMPULSES = 16
-# The scalar rows each kind of row in use (joints.rows_in_use) needs.
+UNIVERSAL_LOCK, EULER_LOWER, EULER_UPPER, EULER_DRIVE, ROTOR = 7, 8, 11, 14, 17
+NUM_SCALARS = 20
+SCALARS = slice(3, 3 + NUM_SCALARS)
+LOCK = slice(23, 26)
+POINT = slice(26, 29)
+ROTOR_BLOCK = slice(29, 32)
+JOINT_IMPULSES = 32
+# The scalar rows each kind of row in use (joints.rows_in_use) needs, in the order a sweep solves
+# them: rotors, drives and motors first, then the hard rows (as the DBD solver's joints.project).
 _SCALAR_ROWS = (
+    ("rotor_hinge", ROTOR), ("rotor_slider", ROTOR), *(("rotor_euler", ROTOR + k) for k in range(3)),
+    *(("euler_drive", EULER_DRIVE + k) for k in range(3)),
     ("hinge_drive", HINGE_DRIVE), ("angular_motor", MOTOR), ("linear_motor", MOTOR), ("has_angle_limits", ANGLE_LOWER),
     ("has_angle_limits", ANGLE_UPPER), ("has_cone", CONE), ("has_travel_limits", TRAVEL_LOWER),
-    ("has_travel_limits", TRAVEL_UPPER),
+    ("has_travel_limits", TRAVEL_UPPER), ("universal", UNIVERSAL_LOCK),
+    *(("euler_limited", EULER_LOWER + k) for k in range(3)), *(("euler_limited", EULER_UPPER + k) for k in range(3)),
 )  # fmt: skip
+_SOFT = np.isin(np.arange(NUM_SCALARS), [HINGE_DRIVE, *range(EULER_DRIVE, EULER_DRIVE + 3), *range(ROTOR, ROTOR + 3)])
+_HELD = np.arange(ROTOR, ROTOR + 3)  # the scalar rows that push with the joint point held (`point_hold`)
 
 
 class JointRows(NamedTuple):
-    """Every row of one joint: ball drive (Block), 7 scalar rows (Rows), angular lock, point."""
+    """Every row of one joint: ball drive (Block), NUM_SCALARS scalar rows (Rows), angular lock,
+    point, ball rotor (Block), and the point impulse per unit impulse of the rows that push with
+    the point held (`point_hold`): scalar_hold (NUM_SCALARS, 3), rotor_hold (3, 3), zero for the
+    others."""
 
     drive: Block
     scalars: Rows
     lock: Block
     point: Block
+    rotor: Block
+    scalar_hold: jnp.ndarray
+    rotor_hold: jnp.ndarray
 
 
 def _scalar_rows_in_use(rows: frozenset[str]) -> list[int]:
-    return sorted({index for name, index in _SCALAR_ROWS if name in rows})
+    """The scalar rows of the kinds in `rows`, each once, in solve order (`_SCALAR_ROWS`)."""
+    return list(dict.fromkeys(index for name, index in _SCALAR_ROWS if name in rows))
 
 
-def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets, pair: BodyPair,
+def _wrapped(angle):
+    """angle wrapped to (-pi, pi]."""
+    return math.safe_atan2(jnp.sin(angle), jnp.cos(angle))
+
+
+def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets, start: jnp.ndarray, pair: BodyPair,
                   impulses: jnp.ndarray, h: float, rows: frozenset[str]):  # fmt: skip
     """The velocity rows of one joint at the start of the substep, SI 2.2-2.5, and the warm start.
 
-    pair: the two bodies at the start pose, dx = dtheta = 0, vel/ang_vel = V*. impulses: (16,)
-    the joint's impulses of the previous substep. Returns (JointRows, impulses, dv (2, 3), dw (2, 3)).
+    pair: the two bodies at the start pose, dx = dtheta = 0, vel/ang_vel = V*. start: (4, 3) the
+    bodies' velocities at the start of the substep (v_a, v_b, w_a, w_b; the rotor rows read the
+    coordinate speeds from them). impulses: (JOINT_IMPULSES,) the joint's impulses of the previous
+    substep. Returns (JointRows, impulses, dv (2, 3), dw (2, 3)).
     """
     dtype = pair.origin_a.dtype
     beta = joint.baumgarte
@@ -254,6 +316,21 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     eye = jnp.eye(3, dtype=dtype)
     quat_a, quat_b = pair.current_quats()
     inf = jnp.asarray(jnp.inf, dtype)
+    at_start = pair._replace(vel_a=start[0], vel_b=start[1], ang_vel_a=start[2], ang_vel_b=start[3])
+
+    # Point: C = p_b - p_a (SI (45), (127)) as one block with the 3x3 K (48). A slider keeps the part
+    # across its axis (SI (51)), a planar joint the part along its normal, both acting level with p_b.
+    delta, arm_a, arm_b = joints.joint_points(joint, flag, pair, quat_a, quat_b)  # delta = p_a - p_b
+    projector = None
+    if "slider" in rows or "planar" in rows:
+        axis = math.quat_rotate(quat_a, joint.local_axis_a)
+        along_axis = axis[:, None] * axis[None, :]
+        projector = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
+        arm_a = arm_a - math.matvec(eye - projector, delta)
+        delta = math.matvec(projector, delta)
+    rows_p = eye if projector is None else projector
+    point = block(pair, rows_p, math.cross(arm_a[None], rows_p), math.cross(arm_b[None], rows_p),
+                  baumgarte_bias(-delta, beta, h), True, projector=projector)  # fmt: skip
 
     # Ball drive (DBD 9 as a soft block): the rotation vector of E = X T^-1 in world axes, pulled to
     # zero by a three-axis spring-damper, |lambda| <= max torque h.
@@ -268,16 +345,15 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
     # Scalar rows, each (linear, angular_a, angular_b, bias, lower, upper, active, softness).
-    scalar = [(zero3, zero3, zero3, 0.0, 0.0, 0.0, False, 0.0)] * 7
-    if rows & {"hinge_drive", "angular_motor", "has_angle_limits"}:
+    scalar = [(zero3, zero3, zero3, 0.0, 0.0, 0.0, False, 0.0)] * NUM_SCALARS
+    if rows & {"hinge_drive", "angular_motor", "has_angle_limits", "rotor_hinge"}:
         angle, axle = joints.hinge_angle(joint, pair)  # d angle / dt = axle . (w_b - w_a)
     if "hinge_drive" in rows:  # DBD 9 about the axle as a soft row; the error wrapped to (-pi, pi]
-        offset = angle - target.drive[0]
-        softness, bias = spring_softness(joint.drive_stiffness, joint.drive_damping,
-                                         math.safe_atan2(jnp.sin(offset), jnp.cos(offset)), h)  # fmt: skip
+        softness, bias = spring_softness(joint.drive_stiffness, joint.drive_damping, _wrapped(angle - target.drive[0]),
+                                         h)  # fmt: skip
         torque = joint.drive_max_torque * h
         scalar[HINGE_DRIVE] = (zero3, axle, axle, bias, -torque, torque, flag.hinge_drive, softness)
-    if rows & {"linear_motor", "has_travel_limits"}:
+    if rows & {"linear_motor", "has_travel_limits", "rotor_slider"}:
         travel, slide, arm_a, arm_b = joints.slider_travel(joint, flag, pair)  # SI (65)-(78)
         torque_a, torque_b = math.cross(arm_a, slide), math.cross(arm_b, slide)
     if rows & {"angular_motor", "linear_motor"}:  # SI (124), (126): J v = target speed
@@ -306,11 +382,110 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         scalar[TRAVEL_LOWER] = (slide, torque_a, torque_b, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
         scalar[TRAVEL_UPPER] = (-slide, -torque_a, -torque_b, baumgarte_bias(upper, beta, h, True), 0.0, inf, active,
                                 0.0)  # fmt: skip
+
+    # Universal lock: hinge axis 1 (fixed in a) and axis 2 (fixed in b) stay perpendicular, C = m1 . m2
+    # (the DBD solver's universal row, joints.project). dC/dt = (w_a x m1) . m2 + m1 . (w_b x m2)
+    # = (m2 x m1) . (w_b - w_a): J = (0, m2 x m1, 0, m2 x m1) in the form of SI (90), a unit
+    # vector where the lock holds (never a normalised vanishing one); bias SI (17).
+    if "universal" in rows:
+        axis_1 = math.quat_rotate(quat_a, joint.local_axes_a[0])
+        axis_2 = math.quat_rotate(quat_b, joint.local_axes_b[1])
+        turn = math.cross(axis_2, axis_1)
+        bias = baumgarte_bias(math.dot(axis_1, axis_2), beta, h)
+        scalar[UNIVERSAL_LOCK] = (zero3, turn, turn, bias, -inf, inf, flag.universal, 0.0)
+
+    # Hinges of universal and gimbal joints (`math.euler_angles`): angle t_k, dt_k/dt = g_k . (w_b - w_a)
+    # (g_k the dual basis of the hinge axes; the universal's g_3 = 0). Per hinge: two one-sided
+    # limit rows, C_min = t_k - lower_k, C_max = upper_k - t_k >= 0 (SI (108)-(121) with the axle a
+    # replaced by g_k, speculative bias), and a drive row (DBD 9 on t_k as a soft row, MuJoCo's
+    # per-dof stiffness and damping), |lambda| <= max torque h.
+    if rows & {"euler_limited", "euler_drive", "rotor_euler"}:
+        angles, directions = joints._euler_angles(joint, flag, pair, rows)
+    if "euler_limited" in rows:
+        for k in range(3):
+            active = flag.euler_limited[k]
+            lower, upper = angles[k] - joint.axis_lower[k], joint.axis_upper[k] - angles[k]
+            g = directions[k]
+            scalar[EULER_LOWER + k] = (zero3, g, g, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
+            scalar[EULER_UPPER + k] = (zero3, -g, -g, baumgarte_bias(upper, beta, h, True), 0.0, inf, active, 0.0)
+    if "euler_drive" in rows:
+        torque = joint.drive_max_torque * h
+        for k in range(3):
+            softness, bias = spring_softness(joint.axis_stiffness[k], joint.axis_damping[k],
+                                             _wrapped(angles[k] - target.drive[k]), h)  # fmt: skip
+            active = flag.euler_drive & (flag.gimbal | (k < 2))  # the universal has no third hinge
+            scalar[EULER_DRIVE + k] = (zero3, directions[k], directions[k], bias, -torque, torque, active, softness)
+
+    # Armature (MuJoCo's rotor inertia I_r on a joint coordinate q, kinetic energy 1/2 I_r qdot^2):
+    # a flywheel of inertia I_r held to q by the velocity row J v - u = 0, J v = qdot (the DoF's
+    # row: the axle, the slide, g_k). A torque actuator on q spins the flywheel up by h tau / I_r
+    # (SI (12); integrator.actuator_wrenches leaves those torques to this row, as the DBD solver's
+    # rotor row does), and an impulse lambda on the bodies takes lambda from it: u = u* - lambda / I_r.
+    # So the row is J v + b + lambda / I_r = 0 with b = -u*, whose sequential-impulse update
+    # (SI (20)-(23) with the flywheel's inverse mass 1 / I_r added to K) is the soft row's with
+    # s = I_r: mass = 1 / (K + 1 / I_r), mix = 1 / (1 + I_r K). It is the velocity form of the
+    # DBD solver's rotor row (a spring with k h^2 = I_r toward where the rotor carries q). A ball's
+    # flywheel is isotropic: J = w_b - w_a in world axes, a soft block of three rows.
+    # The flywheel keeps its own speed from one substep to the next: what the last solve left it,
+    # J(X^(t-1)) V^t with the rows of the last substep's pose X^(t-1) = X^t - h V^t (exactly, in
+    # `solvers.impulse.integrate`), not J(X^t) V^t. The difference, h dJ/dt v, is the flywheel's
+    # share of the coordinate's acceleration when J turns (a gimbal's middle axis as hinge 1
+    # turns): taking J(X^t) V^t would give it that speed for free, with no reaction on the bodies
+    # (the middle hinge of a gimbal with armature drifted 0.38 rad from MuJoCo's in 1 s).
+    def rotor_jacobians(at: BodyPair):  # the three rotor rows' (linear, angular_a, angular_b) at a pose
+        result = []
+        if "rotor_euler" in rows:
+            _, gradients = joints._euler_angles(joint, flag, at, rows)
+        if "rotor_hinge" in rows:
+            _, axle_here = joints.hinge_angle(joint, at)
+        if "rotor_slider" in rows:
+            _, slide_here, arm_a_here, arm_b_here = joints.slider_travel(joint, flag, at)
+            along = (slide_here, math.cross(arm_a_here, slide_here), math.cross(arm_b_here, slide_here))
+        for k in range(3):
+            jacobian = (zero3, gradients[k], gradients[k]) if "rotor_euler" in rows else (zero3, zero3, zero3)
+            if k == 0 and "rotor_hinge" in rows:
+                jacobian = jax.tree.map(lambda x, y: jnp.where(flag.rotor_hinge, y, x), jacobian, (zero3, axle_here,
+                                        axle_here))  # fmt: skip
+            if k == 0 and "rotor_slider" in rows:
+                jacobian = jax.tree.map(lambda x, y: jnp.where(flag.rotor_slider, y, x), jacobian, along)
+            result.append(jacobian)
+        return result
+
+    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
+        before = pair._replace(origin_a=pair.origin_a - h * start[0], origin_b=pair.origin_b - h * start[1],
+                               quat_a=integrator.displaced_quat(pair.quat_a, -h * start[2]),
+                               quat_b=integrator.displaced_quat(pair.quat_b, -h * start[3]))  # fmt: skip
+        for k, (now, then) in enumerate(zip(rotor_jacobians(pair), rotor_jacobians(before), strict=True)):
+            active = flag.rotor_euler[k] if "rotor_euler" in rows else jnp.asarray(False)
+            if k == 0:
+                active = active | flag.rotor_hinge | flag.rotor_slider
+            armature = joint.armature[k]
+            some = armature > 0.0
+            spin_up = h * target.torque[k] / jnp.where(some, armature, 1.0)
+            speed = _relative_speed(at_start, *then) + jnp.where(some, spin_up, 0.0)  # u*
+            scalar[ROTOR + k] = (*now, -speed, -inf, inf, active & some, armature)
+    # The rotor rows push with the joint point held (`point_hold`): their K is the joint-space one.
+    rotor_hold = jnp.zeros((3, 3), dtype)
+    if "rotor_ball" in rows:
+        # MuJoCo's ball velocity is w_b - w_a in b's frame, so the flywheel keeps its speed in b's
+        # frame: u* is the start's w_b - w_a turned with b over the last substep (by h w_b), as
+        # above. Torques on a ball joint with armature are refused at finalize.
+        spin = math.quat_rotate(math.quat_exp(h * start[3]), start[3] - start[2])
+        rotor_hold, held = point_hold(pair, point, jnp.zeros((3, 3), dtype), eye, eye)
+        rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, -spin, flag.rotor_ball & (joint.armature[0] > 0.0),
+                      softness=joint.armature[0], held=held)  # fmt: skip
+    else:
+        rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
+
     linear, angular_a, angular_b = (jnp.stack([entry[k] for entry in scalar]) for k in range(3))
     bias, lower, upper, softness = (jnp.stack([jnp.asarray(entry[k], dtype) for entry in scalar]) for k in (3, 4, 5, 7))
     active = jnp.stack([jnp.asarray(entry[6], bool) for entry in scalar])
-    soft = np.arange(7) == HINGE_DRIVE
-    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, soft)
+    scalar_hold, held = jnp.zeros((NUM_SCALARS, 3), dtype), 0.0
+    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
+        hold, held = point_hold(pair, point, linear[_HELD], angular_a[_HELD], angular_b[_HELD])
+        scalar_hold = scalar_hold.at[_HELD].set(hold)
+        held = jnp.zeros(NUM_SCALARS, dtype).at[_HELD].set(jnp.diagonal(held))
+    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT, held)
 
     # Angular lock, a block over the plane across the axle (hinge, planar: SI (86)-(90), the error
     # the angle between the axes about the axis turning a's toward b's) or over all three axes
@@ -330,37 +505,39 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     else:
         lock = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
-    # Point: C = p_b - p_a (SI (45), (127)) as one block with the 3x3 K (48). A slider keeps the part
-    # across its axis (SI (51)), a planar joint the part along its normal, both acting level with p_b.
-    delta, arm_a, arm_b = joints.joint_points(joint, flag, pair, quat_a, quat_b)  # delta = p_a - p_b
-    projector = None
-    if "slider" in rows or "planar" in rows:
-        axis = math.quat_rotate(quat_a, joint.local_axis_a)
-        along_axis = axis[:, None] * axis[None, :]
-        projector = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
-        arm_a = arm_a - math.matvec(eye - projector, delta)
-        delta = math.matvec(projector, delta)
-    rows_p = eye if projector is None else projector
-    point = block(pair, rows_p, math.cross(arm_a[None], rows_p), math.cross(arm_b[None], rows_p),
-                  baumgarte_bias(-delta, beta, h), True, projector=projector)  # fmt: skip
-
-    result = JointRows(drive, scalars, lock, point)
+    result = JointRows(drive, scalars, lock, point, rotor, scalar_hold, rotor_hold)
     dv, dw = _warm(pair, [(drive, impulses[DRIVE_BLOCK]), (scalars, impulses[SCALARS]), (lock, impulses[LOCK]),
-                          (point, impulses[POINT])])  # fmt: skip
+                          (point, impulses[POINT]), (rotor, impulses[ROTOR_BLOCK])])  # fmt: skip
     return result, impulses, dv, dw
 
 
 def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, rows: frozenset[str]):
-    """One pass over a joint's rows: drive and motor first, then limits, the angular lock and the
-    point last (so that the joint gap has the last word, as in the DBD solver)."""
+    """One pass over a joint's rows: rotors, drives and motors first, then limits, the angular lock
+    and the point last (so that the joint gap has the last word, as in the DBD solver)."""
     pair = BodyPair.of(bodies)
+    point = joint_rows.point
+
+    def held(pair, point_impulse, step, hold):  # the point impulse that comes with a held row's step
+        push = jnp.sum(step[:, None] * hold, axis=0)
+        return _push(pair, point.linear, point.turn_a, point.turn_b, push), point_impulse + push
+
+    point_impulse = impulses[POINT]
+    if "rotor_ball" in rows:
+        pair, value = solve_block(pair, joint_rows.rotor, impulses[ROTOR_BLOCK])
+        pair, point_impulse = held(pair, point_impulse, value - impulses[ROTOR_BLOCK], joint_rows.rotor_hold)
+        impulses = impulses.at[ROTOR_BLOCK].set(value)
     if "ball_drive" in rows:
         pair, value = solve_block(pair, joint_rows.drive, impulses[DRIVE_BLOCK])
         impulses = impulses.at[DRIVE_BLOCK].set(value)
     scalars = impulses[SCALARS]
     for i in _scalar_rows_in_use(rows):
+        before = scalars[i]
         pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
-    impulses = impulses.at[SCALARS].set(scalars)
+        if i in _HELD:
+            pair, point_impulse = held(
+                pair, point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[i][None]
+            )
+    impulses = impulses.at[SCALARS].set(scalars).at[POINT].set(point_impulse)
     if "rotation_lock" in rows:
         pair, value = solve_block(pair, joint_rows.lock, impulses[LOCK])
         impulses = impulses.at[LOCK].set(value)
@@ -581,17 +758,22 @@ def _nothing_to_solve(rows, static, bodies: BodySet, impulses):
     return bodies.dx, bodies.dtheta, impulses
 
 
-def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float,
-             dtype) -> list[VelocityFamily]:  # fmt: skip
+def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float, dtype,
+             start: State) -> list[VelocityFamily]:  # fmt: skip
     """Every constraint family of `model` as velocity rows, with this substep's control and contact
-    slots. User forces have no rows here (the impulse solver applies them before the solve, SI
+    slots; start: the state at the start of the substep (its velocities set the joints' rotor
+    speeds). User forces have no rows here (the impulse solver applies them before the solve, SI
     (12)); their entries keep the family order."""
     structure, options = model.structure, model.options
     tables = structure.family_bodies()
     world = structure.num_bodies
     beta = options.baumgarte
     used = joints.rows_in_use(structure)
-    targets = joints.targets(structure, control, dtype)
+    gear = None if model.torques is None else model.torques.gear  # torques acting through rotor rows
+    targets = joints.targets(structure, control, dtype, gear)
+    vel, ang_vel = with_world_row(jnp.asarray(start.vel, dtype)), with_world_row(jnp.asarray(start.ang_vel, dtype))
+    a, b = structure.joint_body_a.array, structure.joint_body_b.array
+    start_speeds = jnp.stack([vel[a], vel[b], ang_vel[a], ang_vel[b]], axis=1)  # (J, 4, 3)
 
     def on_world(table: np.ndarray) -> np.ndarray:
         return table == world
@@ -606,8 +788,8 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
 
     result = [
         VelocityFamily(
-            "joints", tables[0], (model.joints, targets), joints.flags(structure),
-            lambda p, flag, bodies, lam: prepare_joint(p[0], flag, p[1], BodyPair.of(bodies), lam, h, used),
+            "joints", tables[0], (model.joints, targets, start_speeds), joints.flags(structure),
+            lambda p, flag, bodies, lam: prepare_joint(p[0], flag, p[1], p[2], BodyPair.of(bodies), lam, h, used),
             lambda r, _, bodies, lam: solve_joint(r, bodies, lam, used), JOINT_IMPULSES,
         ),
         link_family("springs", tables[1], model.springs, spring=True),

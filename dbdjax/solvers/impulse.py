@@ -93,7 +93,7 @@ def solve(
     table = dbd.body_table(model, start, h)
     prepared, impulses = [], []
     warm_dv = warm_dw = jnp.zeros((n + 1, 3), dtype)
-    families = velocity.families(model, control, contacts, h, dtype)
+    families = velocity.families(model, control, contacts, h, dtype, state)
     for family, lam in zip(families, stored, strict=True):
         lam = jnp.asarray(lam, dtype)
         if len(family.bodies):
