@@ -352,18 +352,8 @@ def test_impulse_solver_follows_mujoco_on_universal_gimbal_and_armature_chains(f
     assert _gap_to_mujoco(name, 1e-3, solver="impulse") < IMPULSE_GAPS[name]
 
 
-# The DBD solver's gap on the ball with armature went 0.0205 -> 0.0177 rad from dt 1e-3 to 5e-4 (the
-# impulse solver's: 3.3 mrad at 1e-3), and its ball pendulum with armature 0.5 swung with a period of
-# 2.04 s at 8 iterations (2.46 s analytic, 2.01 s without armature). Likely cause, not yet checked:
-# its rotor rows step with the row's own effective mass (rows.PointHold), which on a body whose own
-# inertia is small against m r^2 about the joint leaves most of the armature unapplied.
-_DBD_ROTOR_SHORTFALL = pytest.mark.xfail(strict=True, reason="DBD rotor rows under-apply armature on light links")
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "name", [pytest.param(n, marks=_DBD_ROTOR_SHORTFALL) if n == "ball_armature" else n for n in SCENES]
-)
+@pytest.mark.parametrize("name", list(SCENES))
 def test_gap_to_mujoco_halves_with_the_timestep(float64, name):
     # a modelling error would stay as dt shrinks; the integrators' O(dt) difference halves
     assert 0.4 < _gap_to_mujoco(name, 5e-4) / _gap_to_mujoco(name, 1e-3) < 0.6

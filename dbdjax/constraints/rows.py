@@ -270,11 +270,11 @@ def point_hold(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, active: j
     return PointHold(arm_a, arm_b, solve, jnp.zeros_like(arm_a))
 
 
-def _point_impulses(hold: PointHold, turn_a: jnp.ndarray, turn_b: jnp.ndarray) -> jnp.ndarray:
-    """The point impulse (3,) kg m that closes the gap s = turn_a x arm_a + turn_b x arm_b a
-    turn of a by turn_a and of b by -turn_b opens between the joint points: -K^-1 s."""
+def _point_impulses(hold: PointHold, turn_a: jnp.ndarray, turn_b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(the point impulse (3,) kg m, the gap s (3,) m) for a turn of a by turn_a and of b by
+    -turn_b: s = turn_a x arm_a + turn_b x arm_b opens between the joint points, -K^-1 s closes it."""
     gap = math.cross(turn_a, hold.arm_a) + math.cross(turn_b, hold.arm_b)
-    return -math.matvec(hold.solve, gap)
+    return -math.matvec(hold.solve, gap), gap
 
 
 def angular_row(
@@ -285,13 +285,20 @@ def angular_row(
     rule: Rule,
     h: float = 1.0,
     hold: PointHold | None = None,
+    held_step: bool = False,
 ) -> tuple[BodyPair, jnp.ndarray, PointHold | None]:
     """Project one angular row: error c (rad) with dc/dtheta_a = `direction` = -dc/dtheta_b.
 
-    hold: the joint's point, held while the row acts (module docstring), or None. Returns the
-    moved pair, the new multiplier and the hold with the point impulse it added.
+    hold: the joint's point, held while the row acts (module docstring), or None. held_step: the
+    step length from the held response w - s^T K^-1 s instead of w (a rotor row: see
+    `joints.project`). Returns the moved pair, the new multiplier and the hold with the point
+    impulse it added.
     """
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
+    if hold is not None:
+        point_impulse, gap = _point_impulses(hold, turn_a, turn_b)
+        if held_step:  # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
+            inverse_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
     drift = 0.0
     if rule.spring or rule.speed:
         drift = math.dot(direction, h * (pair.ang_vel_a - pair.ang_vel_b) + (pair.dtheta_a - pair.dtheta_b))
@@ -301,7 +308,6 @@ def angular_row(
         dtheta_b=pair.dtheta_b - step * turn_b,
     )
     if hold is not None:
-        point_impulse = _point_impulses(hold, turn_a, turn_b)
         moved = apply_point_impulse(moved, hold.arm_a, hold.arm_b, step * point_impulse)
         hold = hold._replace(impulse=hold.impulse + step * point_impulse)
     return moved, multiplier + step, hold
@@ -318,6 +324,7 @@ def angular_spring(
     active: jnp.ndarray,
     h: float,
     hold: PointHold | None = None,
+    held_step: bool = False,
 ) -> tuple[BodyPair, jnp.ndarray, PointHold | None]:
     """A three-axis angular spring/damper with a torque limit, DBD (110)-(114).
 
@@ -325,10 +332,15 @@ def angular_spring(
     dc/dtheta_a = -1). multiplier: (3,) kappa so far (the torque on b times h^2). The update is
     the matrix form of the spring rule with the effective inverse inertia W = I_a^-1 + I_b^-1
     (113): d kappa = -xi (1 + (k h^2 + nu h) W)^-1 (kappa + k h^2 c + nu h drift) (112); then
-    |kappa| <= bound = tau_max h^2 (114). hold: the joint's point, held as in `angular_row`.
+    |kappa| <= bound = tau_max h^2 (114). hold: the joint's point, held as in `angular_row`;
+    held_step: W - G^T K^-1 G in (112), the response with the point held (G kappa: the gap a
+    step kappa opens at the joint point, G = [arm_a]x I_a^-1 + [arm_b]x I_b^-1).
     Returns the moved pair, the new kappa and the hold.
     """
     inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b  # (113)
+    if hold is not None and held_step:
+        opens = math.skew(hold.arm_a) @ pair.inv_inertia_a + math.skew(hold.arm_b) @ pair.inv_inertia_b
+        inverse_inertia = inverse_inertia - opens.T @ hold.solve @ opens
     drift = h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a)
     residual = multiplier + stiffness_h2 * error + damping_h * drift
     system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
@@ -343,7 +355,7 @@ def angular_spring(
         dtheta_b=pair.dtheta_b + math.matvec(pair.inv_inertia_b, step),
     )
     if hold is not None:  # kappa turns a by -I_a^-1 kappa and b by +I_b^-1 kappa
-        point_impulse = _point_impulses(
+        point_impulse, _ = _point_impulses(
             hold, -math.matvec(pair.inv_inertia_a, step), -math.matvec(pair.inv_inertia_b, step)
         )
         moved = apply_point_impulse(moved, hold.arm_a, hold.arm_b, point_impulse)

@@ -273,7 +273,9 @@ _SCALAR_ROWS = (
     *(("euler_limited", EULER_LOWER + k) for k in range(3)), *(("euler_limited", EULER_UPPER + k) for k in range(3)),
 )  # fmt: skip
 _SOFT = np.isin(np.arange(NUM_SCALARS), [HINGE_DRIVE, *range(EULER_DRIVE, EULER_DRIVE + 3), *range(ROTOR, ROTOR + 3)])
-_HELD = np.arange(ROTOR, ROTOR + 3)  # the scalar rows that push with the joint point held (`point_hold`)
+# The scalar rows that push with the joint point held (`point_hold`); a slice, not an index array:
+# a NumPy int64 index array met int32 indices after a float64 test in the same process.
+_HELD = slice(ROTOR, ROTOR + 3)
 
 
 class JointRows(NamedTuple):
@@ -533,7 +535,7 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     for i in _scalar_rows_in_use(rows):
         before = scalars[i]
         pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
-        if i in _HELD:
+        if ROTOR <= i < ROTOR + 3:  # _HELD
             pair, point_impulse = held(
                 pair, point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[i][None]
             )
