@@ -1,0 +1,234 @@
+"""Where the time of one dbdjax step goes on CPU, on Brax's humanoid.xml and ant.xml (tests/assets):
+ms per step of a jitted 100-step rollout at batch 1 and 16, the compile time of step and rollout,
+the compiled step's HLO (while loops, gathers, scatters, fusions, instructions, XLA's flop
+estimate), the parts of one substep compiled alone (prediction, contact detection, the constraint
+solve, the restitution pass) and Brax positional's step on the same model, control and dt.
+
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/profile_step.py                    # print only
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/profile_step.py --baseline DIR --out \\
+        benchmarks/results/profile_step_cpu.json
+
+--baseline DIR: also measure the dbdjax found in DIR (a checkout of an earlier commit, e.g.
+`git archive <commit> | tar -x -C DIR`), in child processes interleaved with this checkout's, so
+that both are timed in one run under the same load (the load average is recorded with each).
+The settings are brax_comparison.py's: 1 substep, 4 iterations, float32, uniform random controls
+in the actuators' ctrlrange, the XML's dt. Times: the best of `--repeats` timed calls (wall and
+this process's CPU time; on a shared machine CPU time is the steadier of the two).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+ASSETS = Path(__file__).resolve().parents[1] / "tests" / "assets"
+HORIZON = 100
+
+
+def _controls(control_range: np.ndarray, shape: tuple[int, ...]) -> jnp.ndarray:
+    low, high = control_range[:, 0], control_range[:, 1]
+    unit = np.random.default_rng(0).uniform(size=shape + (len(control_range),))
+    return jnp.asarray(low + unit * (high - low), jnp.float32)
+
+
+def _timed(function, *args, repeats: int) -> tuple[float, float]:
+    """(best wall s, best CPU s) of one call, after a warm call."""
+    jax.block_until_ready(function(*args))
+    wall = cpu = np.inf
+    for _ in range(repeats):
+        clock, clock_cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(function(*args))
+        wall, cpu = min(wall, time.perf_counter() - clock), min(cpu, time.process_time() - clock_cpu)
+    return wall, cpu
+
+
+def hlo_counts(compiled) -> dict:
+    """Op counts of a compiled program's HLO text, and XLA's cost estimate."""
+    text = compiled.as_text()
+    ops = collections.Counter(re.findall(r"=\s*[a-z0-9\[\]{},:\s]*?\s([a-z\-]+)\(", text))
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else (cost or {})
+    return {
+        "instructions": sum(ops.values()),
+        "while": ops.get("while", 0),
+        "fusion": ops.get("fusion", 0),
+        "gather": ops.get("gather", 0),
+        "scatter": ops.get("scatter", 0),
+        "dynamic-slice": ops.get("dynamic-slice", 0),
+        "dynamic-update-slice": ops.get("dynamic-update-slice", 0),
+        "custom-call": ops.get("custom-call", 0),
+        "flops": cost.get("flops"),
+        "bytes_accessed": cost.get("bytes accessed"),
+    }
+
+
+def engine(name: str, kind: str):
+    """(init state, step(state, control), control range, dt) of dbdjax or brax-positional on a model."""
+    xml = ASSETS / f"{name}.xml"
+    if kind == "dbdjax":
+        import dbdjax as dbd
+
+        model = dbd.load_mjcf(xml, substeps=1, iterations=4)
+        return dbd.init(model), lambda s, c: dbd.step(model, s, c), np.asarray(model.control_range), model
+    from brax.io import mjcf
+    from brax.positional import pipeline
+
+    system = mjcf.load(str(xml))
+    state = pipeline.init(system, system.init_q, jnp.zeros(system.qd_size()))
+    return state, lambda s, c: pipeline.step(system, s, c), np.asarray(system.mj_model.actuator_ctrlrange), None
+
+
+def measure(name: str, kind: str, batches: list[int], repeats: int, hlo: bool) -> dict:
+    state, step, control_range, model = engine(name, kind)
+    result: dict = {"load_average_at_start": [round(x, 2) for x in os.getloadavg()], "batches": []}
+    for batch in batches:
+        controls = _controls(control_range, (HORIZON, batch))
+        batched = jax.tree.map(lambda x, b=batch: jnp.broadcast_to(x, (b,) + x.shape), state)
+        one = jax.vmap(step)
+
+        def rollout(s, cs, one=one):
+            return jax.lax.scan(lambda s, c: (one(s, c), None), s, cs)[0]
+
+        clock = time.perf_counter()
+        compiled_step = jax.jit(one).lower(batched, controls[0]).compile()
+        step_compile = time.perf_counter() - clock
+        clock = time.perf_counter()
+        compiled_rollout = jax.jit(rollout).lower(batched, controls).compile()
+        rollout_compile = time.perf_counter() - clock
+        wall, cpu = _timed(compiled_rollout, batched, controls, repeats=repeats)
+        call_wall, _ = _timed(compiled_step, batched, controls[0], repeats=5 * repeats)
+        entry = {
+            "batch": batch,
+            "ms_per_step_wall": round(1e3 * wall / HORIZON, 4),
+            "ms_per_step_cpu": round(1e3 * cpu / HORIZON, 4),
+            "ms_per_step_call_wall": round(1e3 * call_wall, 4),  # one jitted step called from Python
+            "compile_step_s": round(step_compile, 2),
+            "compile_rollout100_s": round(rollout_compile, 2),
+        }
+        if hlo and batch == 1:
+            entry["hlo_step"] = hlo_counts(compiled_step)
+        result["batches"].append(entry)
+        print(f"  {name:9s} {kind:16s} batch {batch:3d}: {entry['ms_per_step_wall']:.3f} ms/step wall, "
+              f"{entry['ms_per_step_cpu']:.3f} cpu, compile step {step_compile:.1f} s, "
+              f"rollout {rollout_compile:.1f} s", flush=True)  # fmt: skip
+    if model is not None and hlo:
+        result["parts_batch1_ms"] = parts(model, state, control_range, repeats)
+    result["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    return result
+
+
+def parts(model, state, control_range, repeats: int) -> dict:
+    """ms of each part of one substep at batch 1, each compiled alone (an upper bound on its share:
+    the whole step fuses across the parts)."""
+    from dbdjax import collision, integrator
+    from dbdjax.solvers import dbd as solver
+
+    h = model.options.dt / model.options.substeps
+    control = _controls(control_range, (1,))[0]
+    predicted = integrator.predict(model, state, h, control)
+    slots = collision.detect(model, state, predicted, h)
+    _, _, normal = solver.solve(model, predicted, control, slots, h, start=state)
+    functions = {
+        "predict": (jax.jit(lambda s, c: integrator.predict(model, s, h, c)), (state, control)),
+        "detect": (jax.jit(lambda s, p: collision.detect(model, s, p, h)), (state, predicted)),
+        "solve": (
+            jax.jit(lambda p, c, sl, s: solver.solve(model, p, c, sl, h, start=s)),
+            (predicted, control, slots, state),
+        ),  # fmt: skip
+        "restitution": (jax.jit(lambda s, sl, n: solver.restitution(model, s, sl, n, h)), (state, slots, normal)),
+    }
+    out = {}
+    for key, (function, args) in functions.items():
+        wall, _ = _timed(function, *args, repeats=20 * repeats)
+        out[key] = round(1e3 * wall, 4)
+    return out
+
+
+def child(args) -> None:
+    """Measure one (model, engine) in this process and print its JSON on the last line."""
+    result = measure(args.model, args.kind, args.batches, args.repeats, args.hlo)
+    print(json.dumps(result))
+
+
+def run_child(path: str, model: str, kind: str, args) -> dict:
+    env = dict(os.environ, PYTHONPATH=path)
+    command = [sys.executable, __file__, "--child", "--model", model, "--kind", kind, "--repeats", str(args.repeats),
+               "--batches", *map(str, args.batches)] + (["--hlo"] if kind == "dbdjax" else [])  # fmt: skip
+    done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+    lines = done.stdout.strip().splitlines()
+    print("\n".join(lines[:-1]), flush=True)
+    return json.loads(lines[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--models", nargs="+", default=["humanoid", "ant"])
+    parser.add_argument("--batches", nargs="+", type=int, default=[1, 16])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--baseline", help="a directory holding an earlier dbdjax to time side by side")
+    parser.add_argument("--no-brax", action="store_true")
+    parser.add_argument("--out", help="write the results here (JSON)")
+    parser.add_argument("--note", default="")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--model", help=argparse.SUPPRESS)
+    parser.add_argument("--kind", help=argparse.SUPPRESS)
+    parser.add_argument("--hlo", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(args)
+        return
+    here = str(Path(__file__).resolve().parents[1])
+    started = time.perf_counter()
+    results: dict = {
+        "settings": "1 substep, 4 iterations, float32, the XML's dt, uniform random controls in ctrlrange; "
+        f"ms/step of a jitted {HORIZON}-step rollout (lax.scan of the vmapped step), best of {args.repeats}",
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "jax": jax.__version__,
+            "device": str(jax.devices()[0]),
+        },  # fmt: skip
+        "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
+        "note": args.note,
+        "models": {},
+    }
+    for model in args.models:
+        entry = {}
+        if args.baseline:
+            entry["dbdjax_before"] = run_child(str(Path(args.baseline).resolve()), model, "dbdjax", args)
+        entry["dbdjax"] = run_child(here, model, "dbdjax", args)
+        if not args.no_brax:
+            entry["brax_positional"] = run_child(here, model, "brax", args)
+        results["models"][model] = entry
+        for batch_index, batch in enumerate(args.batches):
+            ours = entry["dbdjax"]["batches"][batch_index]["ms_per_step_wall"]
+            line = f"{model} batch {batch}: dbdjax {ours:.3f} ms"
+            if args.baseline:
+                before = entry["dbdjax_before"]["batches"][batch_index]["ms_per_step_wall"]
+                line += f" (before {before:.3f} ms, x{before / ours:.2f} faster)"
+            if not args.no_brax:
+                brax = entry["brax_positional"]["batches"][batch_index]["ms_per_step_wall"]
+                line += f", brax positional {brax:.3f} ms (dbdjax / brax = {ours / brax:.2f})"
+            print(line, flush=True)
+    results["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    results["wall_s"] = round(time.perf_counter() - started, 1)
+    if args.out:
+        Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
+    print(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
