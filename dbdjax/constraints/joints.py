@@ -427,8 +427,11 @@ def project(
         eye = jnp.eye(3, dtype=axis_a.dtype)
         across = jnp.where(axle, eye - bisector[:, None] * bisector[None, :], eye)
         misalignment = math.cross(axis_b, axis_a)
-        lock = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
-        error = jnp.where(axle, misalignment, lock)
+        if "rotation_locked" in rows:  # else every lock is an axle's: no relative rotation to trace
+            lock = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
+            error = jnp.where(axle, misalignment, lock)
+        else:
+            error = misalignment
         pair, locked = row.angular_block(
             pair, error, jnp.stack(lam[ROTATION_LOCK : ROTATION_LOCK + 3]), hard(axle | flag.rotation_locked),
             constrained=across,

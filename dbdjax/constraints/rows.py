@@ -88,11 +88,10 @@ def rotate_pair(quat_a, quat_b, vector_a, vector_b) -> tuple[jnp.ndarray, jnp.nd
     chain of tiny operations, and on CPU each kernel costs more than its arithmetic. (Measured on
     the humanoid's joint projection: stacking the two sides' orientations and rotations cut its
     kernels by a quarter; stacking the inertia products or point responses did not help.)"""
-    if jnp.shape(vector_a) != jnp.shape(vector_b) or jnp.shape(quat_a) != jnp.shape(quat_b):
-        return math.quat_rotate(quat_a, vector_a), math.quat_rotate(quat_b, vector_b)
-    quats = jnp.stack([quat_a, quat_b])
-    quats = quats.reshape(quats.shape[:1] + (1,) * (jnp.ndim(vector_a) - jnp.ndim(quat_a)) + quats.shape[1:])
-    both = math.quat_rotate(quats, jnp.stack([vector_a, vector_b]))
+    lead = jnp.broadcast_shapes(*(jnp.shape(x)[:-1] for x in (quat_a, quat_b, vector_a, vector_b)))
+    quats = jnp.stack([jnp.broadcast_to(q, lead + (4,)) for q in (quat_a, quat_b)])
+    vectors = jnp.stack([jnp.broadcast_to(v, lead + (3,)) for v in (vector_a, vector_b)])
+    both = math.quat_rotate(quats, vectors)
     return both[0], both[1]
 
 
