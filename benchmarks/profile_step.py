@@ -19,6 +19,10 @@ program text (a loop body once, though it runs colours x iterations times).
 that both are timed in one run under the same load (the load average is recorded with each).
 --rounds N: N such before/after pairs per model, alternating, each recorded with its load
 average and its CPU-time ratio (before / after), so that a ratio can be told from the noise.
+--paired N (with --baseline): instead, both checkouts compile their rollouts in two resident
+child processes, then time N rollout calls each, one after the other in alternating order, so
+that each pair of calls meets the same load; recorded: every pair's CPU times, the median of the
+pairs' ratios and the ratio of the two minima. On a loaded machine this is the steadiest ratio.
 The settings are brax_comparison.py's: 1 substep, 4 iterations, float32, uniform random controls
 in the actuators' ctrlrange, the XML's dt. Times: the best of `--repeats` timed calls (wall and
 this process's CPU time; on a shared machine CPU time is the steadier of the two).
@@ -165,6 +169,68 @@ def parts(model, state, control_range, repeats: int) -> dict:
     return out
 
 
+def serve(args) -> None:
+    """Resident child of --paired: compile the rollout at each batch, print "ready", then answer each
+    line "<batch index>" on stdin with one timed call's "<cpu s> <wall s>"."""
+    state, step, control_range, _ = engine(args.model, "dbdjax")
+    calls = []
+    for batch in args.batches:
+        controls = _controls(control_range, (HORIZON, batch))
+        batched = jax.tree.map(lambda x, b=batch: jnp.broadcast_to(x, (b,) + x.shape), state)
+        one = jax.vmap(step)
+        compiled = jax.jit(lambda s, cs, one=one: jax.lax.scan(lambda s, c: (one(s, c), None), s, cs)[0])
+        compiled = compiled.lower(batched, controls).compile()
+        jax.block_until_ready(compiled(batched, controls))
+        calls.append((compiled, batched, controls))
+    print("ready", flush=True)
+    for line in sys.stdin:
+        function, batched, controls = calls[int(line)]
+        clock, clock_cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(function(batched, controls))
+        print(f"{time.process_time() - clock_cpu} {time.perf_counter() - clock}", flush=True)
+
+
+def paired(baseline: str, here: str, model: str, args) -> dict:
+    """--paired: N alternating timed calls of the baseline's and this checkout's rollouts."""
+    command = [sys.executable, __file__, "--serve", "--model", model, "--batches", *map(str, args.batches)]
+    servers = [
+        subprocess.Popen(
+            command, env=dict(os.environ, PYTHONPATH=path), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )  # fmt: skip
+        for path in (baseline, here)
+    ]
+    for server in servers:
+        while server.stdout.readline().strip() != "ready":
+            pass
+    times = {batch: ([], []) for batch in args.batches}  # (before, after) CPU s per call
+    loads = []
+    for k in range(args.paired):
+        for index, batch in enumerate(args.batches):
+            for which in (0, 1) if k % 2 == 0 else (1, 0):
+                servers[which].stdin.write(f"{index}\n")
+                servers[which].stdin.flush()
+                times[batch][which].append(float(servers[which].stdout.readline().split()[0]))
+        loads.append(round(os.getloadavg()[0], 2))
+    for server in servers:
+        server.stdin.close()
+        server.wait()
+    out = {"load_average_1min": [min(loads), max(loads)], "load_averages": loads}
+    for batch, (before, after) in times.items():
+        ratios = np.asarray(before) / np.asarray(after)
+        out[f"batch_{batch}"] = {
+            "cpu_ms_per_step_before": [round(1e3 * t / HORIZON, 4) for t in before],
+            "cpu_ms_per_step_after": [round(1e3 * t / HORIZON, 4) for t in after],
+            "cpu_ratio_median": round(float(np.median(ratios)), 3),  # before / after: > 1 is faster
+            "cpu_ratio_quartiles": [round(float(q), 3) for q in np.percentile(ratios, [25, 75])],
+            "cpu_ratio_of_minima": round(min(before) / min(after), 3),
+        }
+        got = out[f"batch_{batch}"]
+        print(f"{model} batch {batch} paired x{args.paired}: CPU ratio median {got['cpu_ratio_median']} (quartiles "
+              f"{got['cpu_ratio_quartiles']}), of minima {got['cpu_ratio_of_minima']}, load {min(loads)}-{max(loads)}",
+              flush=True)  # fmt: skip
+    return out
+
+
 def child(args) -> None:
     """Measure one (model, engine) in this process and print its JSON on the last line."""
     result = measure(args.model, args.kind, args.batches, args.repeats, args.hlo, args.parts)
@@ -206,16 +272,21 @@ def main() -> None:
     parser.add_argument("--baseline", help="a directory holding an earlier dbdjax to time side by side")
     parser.add_argument("--no-brax", action="store_true")
     parser.add_argument("--parts", action="store_true", help="also time the parts of one substep (batch 1)")
-    parser.add_argument("--rounds", type=int, default=1, help="before/after pairs per model (with --baseline)")
+    parser.add_argument("--rounds", type=int, default=1, help="before/after child pairs per model (0: --paired only)")
     parser.add_argument("--out", help="write the results here (JSON)")
     parser.add_argument("--note", default="")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--model", help=argparse.SUPPRESS)
     parser.add_argument("--kind", help=argparse.SUPPRESS)
     parser.add_argument("--hlo", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--paired", type=int, default=0, help="N alternating timed calls (with --baseline)")
+    parser.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         child(args)
+        return
+    if args.serve:
+        serve(args)
         return
     here = str(Path(__file__).resolve().parents[1])
     started = time.perf_counter()
@@ -229,6 +300,8 @@ def main() -> None:
     }
     for model in args.models:
         entry = {}
+        if args.paired and args.baseline:
+            entry["paired"] = paired(str(Path(args.baseline).resolve()), here, model, args)
         for round_index in range(args.rounds if args.baseline else 1):
             if args.baseline:
                 before = run_child(str(Path(args.baseline).resolve()), model, "dbdjax", args)
@@ -247,7 +320,9 @@ def main() -> None:
         if not args.no_brax:
             entry["brax_positional"] = run_child(here, model, "brax", args)
         results["models"][model] = entry
-        for batch_index, batch in enumerate(args.batches):
+        if args.out:  # after each model, so that a run cut short keeps what it measured
+            Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
+        for batch_index, batch in enumerate(args.batches if "dbdjax" in entry else []):  # --rounds 0: paired only
             ours = entry["dbdjax"]["batches"][batch_index]["ms_per_step_wall"]
             line = f"{model} batch {batch}: dbdjax {ours:.3f} ms"
             if args.baseline:
