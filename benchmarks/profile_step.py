@@ -1,8 +1,14 @@
 """Where the time of one dbdjax step goes on CPU, on Brax's humanoid.xml and ant.xml (tests/assets):
-ms per step of a jitted 100-step rollout at batch 1 and 16, the compile time of step and rollout,
-the compiled step's HLO (while loops, gathers, scatters, fusions, instructions, XLA's flop
-estimate), the parts of one substep compiled alone (prediction, contact detection, the constraint
-solve, the restitution pass) and Brax positional's step on the same model, control and dt.
+ms per step of a jitted 100-step rollout at batch 1 and 16, the compile time of step (first batch)
+and rollout, the compiled step's HLO (while loops, gathers, scatters, fusions, instructions, XLA's
+flop estimate), with --parts the parts of one substep compiled alone (prediction, contact
+detection, the constraint solve, the restitution pass), and Brax positional's step on the same
+model, control and dt.
+
+On XLA:CPU at small batch the step's time follows the number of compiled kernels (fusions) it
+runs, not its arithmetic: each joint colour of each Gauss-Seidel iteration runs its projection's
+few hundred kernels on arrays of a handful of joints. `hlo_step.fusion` counts them in the
+program text (a loop body once, though it runs colours x iterations times).
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/profile_step.py                    # print only
     PYTHONPATH=$PWD .venv/bin/python benchmarks/profile_step.py --baseline DIR --out \\
@@ -11,6 +17,12 @@ solve, the restitution pass) and Brax positional's step on the same model, contr
 --baseline DIR: also measure the dbdjax found in DIR (a checkout of an earlier commit, e.g.
 `git archive <commit> | tar -x -C DIR`), in child processes interleaved with this checkout's, so
 that both are timed in one run under the same load (the load average is recorded with each).
+--rounds N: N such before/after pairs per model, alternating, each recorded with its load
+average and its CPU-time ratio (before / after), so that a ratio can be told from the noise.
+--paired N (with --baseline): instead, both checkouts compile their rollouts in two resident
+child processes, then time N rollout calls each, one after the other in alternating order, so
+that each pair of calls meets the same load; recorded: every pair's CPU times, the median of the
+pairs' ratios and the ratio of the two minima. On a loaded machine this is the steadiest ratio.
 The settings are brax_comparison.py's: 1 substep, 4 iterations, float32, uniform random controls
 in the actuators' ctrlrange, the XML's dt. Times: the best of `--repeats` timed calls (wall and
 this process's CPU time; on a shared machine CPU time is the steadier of the two).
@@ -90,7 +102,7 @@ def engine(name: str, kind: str):
     return state, lambda s, c: pipeline.step(system, s, c), np.asarray(system.mj_model.actuator_ctrlrange), None
 
 
-def measure(name: str, kind: str, batches: list[int], repeats: int, hlo: bool) -> dict:
+def measure(name: str, kind: str, batches: list[int], repeats: int, hlo: bool, parts_too: bool = False) -> dict:
     state, step, control_range, model = engine(name, kind)
     result: dict = {"load_average_at_start": [round(x, 2) for x in os.getloadavg()], "batches": []}
     for batch in batches:
@@ -102,28 +114,29 @@ def measure(name: str, kind: str, batches: list[int], repeats: int, hlo: bool) -
             return jax.lax.scan(lambda s, c: (one(s, c), None), s, cs)[0]
 
         clock = time.perf_counter()
-        compiled_step = jax.jit(one).lower(batched, controls[0]).compile()
-        step_compile = time.perf_counter() - clock
-        clock = time.perf_counter()
         compiled_rollout = jax.jit(rollout).lower(batched, controls).compile()
         rollout_compile = time.perf_counter() - clock
         wall, cpu = _timed(compiled_rollout, batched, controls, repeats=repeats)
-        call_wall, _ = _timed(compiled_step, batched, controls[0], repeats=5 * repeats)
         entry = {
             "batch": batch,
             "ms_per_step_wall": round(1e3 * wall / HORIZON, 4),
             "ms_per_step_cpu": round(1e3 * cpu / HORIZON, 4),
-            "ms_per_step_call_wall": round(1e3 * call_wall, 4),  # one jitted step called from Python
-            "compile_step_s": round(step_compile, 2),
             "compile_rollout100_s": round(rollout_compile, 2),
+            "load_average": [round(x, 2) for x in os.getloadavg()],
         }
-        if hlo and batch == 1:
-            entry["hlo_step"] = hlo_counts(compiled_step)
+        if batch == batches[0]:  # the step alone, at the first batch only: its compile time, a call, its HLO
+            clock = time.perf_counter()
+            compiled_step = jax.jit(one).lower(batched, controls[0]).compile()
+            entry["compile_step_s"] = round(time.perf_counter() - clock, 2)
+            call_wall, _ = _timed(compiled_step, batched, controls[0], repeats=5 * repeats)
+            entry["ms_per_step_call_wall"] = round(1e3 * call_wall, 4)  # one jitted step called from Python
+            if hlo:
+                entry["hlo_step"] = hlo_counts(compiled_step)
         result["batches"].append(entry)
         print(f"  {name:9s} {kind:16s} batch {batch:3d}: {entry['ms_per_step_wall']:.3f} ms/step wall, "
-              f"{entry['ms_per_step_cpu']:.3f} cpu, compile step {step_compile:.1f} s, "
-              f"rollout {rollout_compile:.1f} s", flush=True)  # fmt: skip
-    if model is not None and hlo:
+              f"{entry['ms_per_step_cpu']:.3f} cpu, compile rollout {rollout_compile:.1f} s, "
+              f"load {entry['load_average'][0]:.1f}", flush=True)  # fmt: skip
+    if model is not None and parts_too:
         result["parts_batch1_ms"] = parts(model, state, control_range, repeats)
     result["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
     return result
@@ -156,16 +169,95 @@ def parts(model, state, control_range, repeats: int) -> dict:
     return out
 
 
+def serve(args) -> None:
+    """Resident child of --paired: compile the rollout at each batch, print "ready", then answer each
+    line "<batch index>" on stdin with one timed call's "<cpu s> <wall s>"."""
+    state, step, control_range, _ = engine(args.model, "dbdjax")
+    calls = []
+    for batch in args.batches:
+        controls = _controls(control_range, (HORIZON, batch))
+        batched = jax.tree.map(lambda x, b=batch: jnp.broadcast_to(x, (b,) + x.shape), state)
+        one = jax.vmap(step)
+        compiled = jax.jit(lambda s, cs, one=one: jax.lax.scan(lambda s, c: (one(s, c), None), s, cs)[0])
+        compiled = compiled.lower(batched, controls).compile()
+        jax.block_until_ready(compiled(batched, controls))
+        calls.append((compiled, batched, controls))
+    print("ready", flush=True)
+    for line in sys.stdin:
+        function, batched, controls = calls[int(line)]
+        clock, clock_cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(function(batched, controls))
+        print(f"{time.process_time() - clock_cpu} {time.perf_counter() - clock}", flush=True)
+
+
+def paired(baseline: str, here: str, model: str, args) -> dict:
+    """--paired: N alternating timed calls of the baseline's and this checkout's rollouts."""
+    command = [sys.executable, __file__, "--serve", "--model", model, "--batches", *map(str, args.batches)]
+    servers = [
+        subprocess.Popen(
+            command, env=dict(os.environ, PYTHONPATH=path), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )  # fmt: skip
+        for path in (baseline, here)
+    ]
+    for server in servers:
+        while server.stdout.readline().strip() != "ready":
+            pass
+    times = {batch: ([], []) for batch in args.batches}  # (before, after) CPU s per call
+    loads = []
+    for k in range(args.paired):
+        for index, batch in enumerate(args.batches):
+            for which in (0, 1) if k % 2 == 0 else (1, 0):
+                servers[which].stdin.write(f"{index}\n")
+                servers[which].stdin.flush()
+                times[batch][which].append(float(servers[which].stdout.readline().split()[0]))
+        loads.append(round(os.getloadavg()[0], 2))
+    for server in servers:
+        server.stdin.close()
+        server.wait()
+    out = {"load_average_1min": [min(loads), max(loads)], "load_averages": loads}
+    for batch, (before, after) in times.items():
+        ratios = np.asarray(before) / np.asarray(after)
+        out[f"batch_{batch}"] = {
+            "cpu_ms_per_step_before": [round(1e3 * t / HORIZON, 4) for t in before],
+            "cpu_ms_per_step_after": [round(1e3 * t / HORIZON, 4) for t in after],
+            "cpu_ratio_median": round(float(np.median(ratios)), 3),  # before / after: > 1 is faster
+            "cpu_ratio_quartiles": [round(float(q), 3) for q in np.percentile(ratios, [25, 75])],
+            "cpu_ratio_of_minima": round(min(before) / min(after), 3),
+        }
+        got = out[f"batch_{batch}"]
+        print(f"{model} batch {batch} paired x{args.paired}: CPU ratio median {got['cpu_ratio_median']} (quartiles "
+              f"{got['cpu_ratio_quartiles']}), of minima {got['cpu_ratio_of_minima']}, load {min(loads)}-{max(loads)}",
+              flush=True)  # fmt: skip
+    return out
+
+
 def child(args) -> None:
     """Measure one (model, engine) in this process and print its JSON on the last line."""
-    result = measure(args.model, args.kind, args.batches, args.repeats, args.hlo)
+    result = measure(args.model, args.kind, args.batches, args.repeats, args.hlo, args.parts)
     print(json.dumps(result))
+
+
+def _ratios(before: dict, after: dict) -> dict:
+    """Per batch: CPU and wall ms/step before and after, their ratios (before / after: > 1 is
+    faster), and the load averages the two children measured under."""
+    out = {}
+    for old, new in zip(before["batches"], after["batches"], strict=True):
+        out[f"batch_{new['batch']}"] = {
+            "cpu_ms_before": old["ms_per_step_cpu"],
+            "cpu_ms_after": new["ms_per_step_cpu"],
+            "cpu_ratio": round(old["ms_per_step_cpu"] / new["ms_per_step_cpu"], 3),
+            "wall_ratio": round(old["ms_per_step_wall"] / new["ms_per_step_wall"], 3),
+            "load_before": old.get("load_average", before["load_average_at_start"])[0],
+            "load_after": new.get("load_average", after["load_average_at_start"])[0],
+        }
+    return out
 
 
 def run_child(path: str, model: str, kind: str, args) -> dict:
     env = dict(os.environ, PYTHONPATH=path)
     command = [sys.executable, __file__, "--child", "--model", model, "--kind", kind, "--repeats", str(args.repeats),
                "--batches", *map(str, args.batches)] + (["--hlo"] if kind == "dbdjax" else [])  # fmt: skip
+    command += ["--parts"] if kind == "dbdjax" and args.parts else []
     done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
     lines = done.stdout.strip().splitlines()
     print("\n".join(lines[:-1]), flush=True)
@@ -179,15 +271,22 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--baseline", help="a directory holding an earlier dbdjax to time side by side")
     parser.add_argument("--no-brax", action="store_true")
+    parser.add_argument("--parts", action="store_true", help="also time the parts of one substep (batch 1)")
+    parser.add_argument("--rounds", type=int, default=1, help="before/after child pairs per model (0: --paired only)")
     parser.add_argument("--out", help="write the results here (JSON)")
     parser.add_argument("--note", default="")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--model", help=argparse.SUPPRESS)
     parser.add_argument("--kind", help=argparse.SUPPRESS)
     parser.add_argument("--hlo", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--paired", type=int, default=0, help="N alternating timed calls (with --baseline)")
+    parser.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         child(args)
+        return
+    if args.serve:
+        serve(args)
         return
     here = str(Path(__file__).resolve().parents[1])
     started = time.perf_counter()
@@ -201,18 +300,35 @@ def main() -> None:
     }
     for model in args.models:
         entry = {}
-        if args.baseline:
-            entry["dbdjax_before"] = run_child(str(Path(args.baseline).resolve()), model, "dbdjax", args)
-        entry["dbdjax"] = run_child(here, model, "dbdjax", args)
+        if args.paired and args.baseline:
+            entry["paired"] = paired(str(Path(args.baseline).resolve()), here, model, args)
+        for round_index in range(args.rounds if args.baseline else 1):
+            if args.baseline:
+                before = run_child(str(Path(args.baseline).resolve()), model, "dbdjax", args)
+            after = run_child(here, model, "dbdjax", args)
+            if round_index == 0:
+                entry["dbdjax"] = after
+                if args.baseline:
+                    entry["dbdjax_before"] = before
+                    entry["rounds"] = []
+            else:
+                entry.setdefault("dbdjax_more", []).append(after)
+                entry.setdefault("dbdjax_before_more", []).append(before)
+            if args.baseline:
+                entry["rounds"].append(_ratios(before, after))
+                print(f"{model} round {round_index}: {entry['rounds'][-1]}", flush=True)
         if not args.no_brax:
             entry["brax_positional"] = run_child(here, model, "brax", args)
         results["models"][model] = entry
-        for batch_index, batch in enumerate(args.batches):
+        if args.out:  # after each model, so that a run cut short keeps what it measured
+            Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
+        for batch_index, batch in enumerate(args.batches if "dbdjax" in entry else []):  # --rounds 0: paired only
             ours = entry["dbdjax"]["batches"][batch_index]["ms_per_step_wall"]
             line = f"{model} batch {batch}: dbdjax {ours:.3f} ms"
             if args.baseline:
                 before = entry["dbdjax_before"]["batches"][batch_index]["ms_per_step_wall"]
-                line += f" (before {before:.3f} ms, x{before / ours:.2f} faster)"
+                cpu = [r[f"batch_{batch}"]["cpu_ratio"] for r in entry["rounds"]]
+                line += f" (before {before:.3f} ms, x{before / ours:.2f} faster; CPU time ratios {cpu})"
             if not args.no_brax:
                 brax = entry["brax_positional"]["batches"][batch_index]["ms_per_step_wall"]
                 line += f", brax positional {brax:.3f} ms (dbdjax / brax = {ours / brax:.2f})"

@@ -120,7 +120,9 @@ def quat_conjugate(q: jnp.ndarray) -> jnp.ndarray:
 
 def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
     """Unit quaternion; a zero quaternion becomes the identity."""
-    squared = jnp.sum(q * q, axis=-1, keepdims=True)
+    # Summed component by component, not by a reduction: a reduce ends an XLA fusion on CPU, and
+    # the solver renormalises two quaternions in every row it projects.
+    squared = (q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1] + q[..., 2] * q[..., 2] + q[..., 3] * q[..., 3])[..., None]
     is_zero = squared <= _TINY_SQUARED
     safe = jnp.where(is_zero, 1.0, squared)
     identity = quat_identity(q.shape[:-1]).astype(q.dtype)

@@ -52,10 +52,10 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         return table == world
 
     gear = None if model.torques is None else model.torques.gear
-    offsets = None
+    offsets = reference = None
     if start is not None and predicted is not None and structure.joint_rotor.array.any():
-        offsets = joints.rotor_offsets(model, predicted, start, h)
-    joint_targets = joints.targets(structure, control, dtype, gear, offsets)
+        offsets, reference = joints.rotor_offsets(model, predicted, start, h, with_reference=True)
+    joint_targets = joints.targets(structure, control, dtype, gear, offsets, reference)
     rows = joints.rows_in_use(structure)
     result = [
         Family(

@@ -99,6 +99,9 @@ class Targets(NamedTuple):
     motor: jnp.ndarray  # () rad/s (hinge) or m/s (slider)
     torque: jnp.ndarray  # (3,) N m (N) of torque actuators acting through the rotor row of each dof
     rotor: jnp.ndarray  # (3,) q(X*) - (2 q(X^t) - q(X^t-1)) of each dof with armature (`rotor_offsets`)
+    # (hinge angle (), slider travel (), gimbal angles (3,)) at X*, the rotor rows' reference, fixed
+    # through the sweeps: computed once per substep (`rotor_offsets`); None: in `project`.
+    reference: tuple | None = None
 
 
 def flags(structure: Structure) -> JointFlags:
@@ -144,12 +147,13 @@ def flags(structure: Structure) -> JointFlags:
 
 def targets(
     structure: Structure, control: jnp.ndarray | None, dtype, gear: jnp.ndarray | None = None,
-    rotor: jnp.ndarray | None = None,
+    rotor: jnp.ndarray | None = None, reference: tuple | None = None,
 ) -> Targets:  # fmt: skip
     """Each joint's slice of the flat control vector, (J, 3) drive and (J,) motor targets, the
     (J, 3) torques gear * u of the torque actuators that act through a rotor row (gear: (T,), the
     torque actuators' `Torques.gear`), and the rotor rows' (J, 3) offsets (`rotor_offsets`; None:
-    zero, the rotor then coasts with the bodies' prediction)."""
+    zero, the rotor then coasts with the bodies' prediction) and their references at X*
+    (`rotor_offsets(..., with_reference=True)`; None: each joint's projection computes its own)."""
     padded = padded_control(structure, control, dtype)
     torque = jnp.zeros((structure.num_joints, 3), dtype)
     inside = np.flatnonzero(structure.torque_in_joint.array)
@@ -162,6 +166,7 @@ def targets(
         motor=padded[structure.joint_motor_control.array],
         torque=torque,
         rotor=jnp.zeros((structure.num_joints, 3), dtype) if rotor is None else rotor,
+        reference=reference,
     )
 
 
@@ -176,14 +181,17 @@ def _coordinates(joint: Joints, flag: JointFlags, pair: BodyPair, kinds: frozens
     return angle, travel, euler, relative
 
 
-def rotor_offsets(model: Model, predicted: State, start: State, h: float) -> jnp.ndarray:
+def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_reference: bool = False):
     """(J, 3) q(X*) - q_rotor for each degree of freedom with armature: how far the bodies'
     prediction X* carries the joint coordinate q beyond where the rotor's own inertia carries it,
     q_rotor = q^t + (q^t - q^(t-1)) (its discrete velocity is the last substep's, as the bodies'
     is: X^(t-1) = X^t - h V^t exactly in DBD (36)-(39)). Gravity and the other actuators' torques
     move the bodies in X* but not the rotor, and q is curved in X (a hinge angle between two
     turning bodies, a gimbal angle), so taking q(X*) as the rotor's prediction would not do.
-    Angles are differenced modulo 2 pi; a ball's entry is the world rotation vector."""
+    Angles are differenced modulo 2 pi; a ball's entry is the world rotation vector.
+    with_reference: also return the coordinates at X* ((J,) hinge angles, (J,) slider travels,
+    (J, 3) gimbal angles; `Targets.reference`), which the rotor rows measure from: computed here
+    once per substep instead of in every sweep over the joints."""
     structure = model.structure
     flag = flags(structure)
     kinds = rows_in_use(structure)
@@ -215,9 +223,11 @@ def rotor_offsets(model: Model, predicted: State, start: State, h: float) -> jnp
         ball = turned(relative[0], relative[1], after) - turned(relative[1], relative[2], now)
         first = jnp.where(flag.rotor_hinge, hinge, jnp.where(flag.rotor_slider, slide, 0.0))
         single = jnp.stack([first, jnp.zeros_like(first), jnp.zeros_like(first)])
-        return jnp.where(flag.rotor_ball, ball, jnp.where(flag.rotor_euler, gimbal, single))
+        offset = jnp.where(flag.rotor_ball, ball, jnp.where(flag.rotor_euler, gimbal, single))
+        return offset, (angle[0], travel[0], euler[0])
 
-    return jax.vmap(one)(model.joints, flag, *poses)
+    offsets, reference = jax.vmap(one)(model.joints, flag, *poses)
+    return (offsets, reference) if with_reference else offsets
 
 
 def padded_control(structure: Structure, control: jnp.ndarray | None, dtype) -> jnp.ndarray:
@@ -232,8 +242,13 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
     The others are left out of the trace altogether: a chain of ball joints compiles to the point
     block alone."""
     f = flags(structure)
-    used = {name for name, values in f._asdict().items() if values.any()}
-    if (f.hinge | f.rotation_locked | f.planar).any():
+    return _rows_of(f, np.ones(len(f.hinge), bool))
+
+
+def _rows_of(f: JointFlags, members: np.ndarray) -> frozenset[str]:
+    """The row names some joint of `members` (bool (J,)) has, as `rows_in_use`."""
+    used = {name for name, values in f._asdict().items() if np.any(values[members])}
+    if np.any((f.hinge | f.rotation_locked | f.planar)[members]):
         used.add("rotation_lock")
     return frozenset(used | {"point"})
 
@@ -256,9 +271,8 @@ def hinge_angle(joint: Joints, pair: BodyPair):
     quat_a, quat_b = pair.current_quats()
     angle = math.quat_twist_angle(relative_rotation(joint, quat_a, quat_b), joint.local_axis_a)
     # The bisector of the two bodies' axes (equal for a hinge, close for a ball's twist axis).
-    axis, _ = math.safe_normalize(
-        math.quat_rotate(quat_a, joint.local_axis_a) + math.quat_rotate(quat_b, joint.local_axis_b)
-    )
+    axis_a, axis_b = row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
+    axis, _ = math.safe_normalize(axis_a + axis_b)
     return angle, axis
 
 
@@ -267,8 +281,7 @@ def _euler_angles(joint: Joints, flag: JointFlags, pair: BodyPair, rows: frozens
     universal or gimbal joint at X* + dX, `math.euler_angles` (one kind traced when the model
     has only one: `rows`)."""
     quat_a, quat_b = pair.current_quats()
-    axes_a = math.quat_rotate(quat_a[None], joint.local_axes_a)
-    axes_b = math.quat_rotate(quat_b[None], joint.local_axes_b)
+    axes_a, axes_b = row.rotate_pair(quat_a[None], quat_b[None], joint.local_axes_a, joint.local_axes_b)
     universal = flag.universal if {"universal", "gimbal"} <= rows else "universal" in rows
     return math.euler_angles(axes_a, axes_b, universal)
 
@@ -303,7 +316,8 @@ def project(
     """
     pair = BodyPair.of(bodies)
     xi, alpha = joint.relaxation, joint.regularization
-    lam = list(multipliers)
+    lam = [multipliers[k] for k in range(NUM_MULTIPLIERS)]
+    untouched = list(lam)
     # The angular rows move the pair with the joint point held (rows.PointHold): where the point
     # block is a full 3-D one, at the points of the start of this sweep.
     _, hold_arm_a, hold_arm_b = joint_points(joint, flag, pair, *pair.current_quats())
@@ -332,12 +346,12 @@ def project(
             return math.safe_atan2(jnp.sin(angle - reference), jnp.cos(angle - reference))
 
     if "rotor_hinge" in rows:
-        reference, _ = hinge_angle(joint, still)
+        reference = hinge_angle(joint, still)[0] if target.reference is None else target.reference[0]
         angle, axis = hinge_angle(joint, pair)
         error, rule = rotor(0, wrapped(angle, reference), flag.rotor_hinge)
         pair, lam[ROTOR], hold = row.angular_row(pair, -axis, error, lam[ROTOR], rule, h, hold, held_step=True)
     if "rotor_slider" in rows:
-        reference, *_ = slider_travel(joint, flag, still)
+        reference = slider_travel(joint, flag, still)[0] if target.reference is None else target.reference[1]
         travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
         error, rule = rotor(0, travel - reference, flag.rotor_slider)
         pair, lam[ROTOR] = row.positional_row(pair, -axis, arm_a, arm_b, error, lam[ROTOR], rule, h)
@@ -352,7 +366,7 @@ def project(
         )  # fmt: skip
         lam[ROTOR : ROTOR + 3] = list(kappa)
     if "rotor_euler" in rows:
-        reference, _ = _euler_angles(joint, flag, still, rows)
+        reference = _euler_angles(joint, flag, still, rows)[0] if target.reference is None else target.reference[2]
         for k in range(3):
             angles, directions = _euler_angles(joint, flag, pair, rows)
             error, rule = rotor(k, wrapped(angles[k], reference[k]), flag.rotor_euler[k])
@@ -418,15 +432,17 @@ def project(
     # (SI (53)), c = minus the world rotation vector of X.
     if "rotation_lock" in rows:
         quat_a, quat_b = pair.current_quats()
-        axis_a = math.quat_rotate(quat_a, joint.local_axis_a)
-        axis_b = math.quat_rotate(quat_b, joint.local_axis_b)
+        axis_a, axis_b = row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
         axle = flag.hinge | flag.planar
         bisector, _ = math.safe_normalize(axis_a + axis_b)
         eye = jnp.eye(3, dtype=axis_a.dtype)
         across = jnp.where(axle, eye - bisector[:, None] * bisector[None, :], eye)
         misalignment = math.cross(axis_b, axis_a)
-        lock = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
-        error = jnp.where(axle, misalignment, lock)
+        if "rotation_locked" in rows:  # else every lock is an axle's: no relative rotation to trace
+            lock = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
+            error = jnp.where(axle, misalignment, lock)
+        else:
+            error = misalignment
         pair, locked = row.angular_block(
             pair, error, jnp.stack(lam[ROTATION_LOCK : ROTATION_LOCK + 3]), hard(axle | flag.rotation_locked),
             constrained=across,
@@ -441,8 +457,7 @@ def project(
     # product: same row at the solution, but c is polynomial in the orientations.
     if "universal" in rows:
         quat_a, quat_b = pair.current_quats()
-        axis_1 = math.quat_rotate(quat_a, joint.local_axes_a[0])
-        axis_2 = math.quat_rotate(quat_b, joint.local_axes_b[1])
+        axis_1, axis_2 = row.rotate_pair(quat_a, quat_b, joint.local_axes_a[0], joint.local_axes_b[1])
         pair, lam[ROTATION_LOCK], hold = row.angular_row(
             pair, math.cross(axis_1, axis_2), math.dot(axis_1, axis_2), lam[ROTATION_LOCK], hard(flag.universal),
             hold=hold,
@@ -462,7 +477,7 @@ def project(
     if "has_cone" in rows:
         quat_a, quat_b = pair.current_quats()
         cone_angle, cone_axis = math.angle_between(
-            math.quat_rotate(quat_a, joint.local_axis_a), math.quat_rotate(quat_b, joint.local_axis_b)
+            *row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
         )
         pair, lam[CONE], hold = row.angular_row(
             pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], hard(flag.has_cone, inequality=True), hold=hold
@@ -514,4 +529,19 @@ def project(
     )
     lam[POINT : POINT + 3] = list(point)
     dx, dtheta = pair.displacements()
-    return dx, dtheta, jnp.stack(lam)
+    return dx, dtheta, _restacked(multipliers, lam, untouched)
+
+
+def _restacked(multipliers: jnp.ndarray, lam: list, untouched: list) -> jnp.ndarray:
+    """The (NUM_MULTIPLIERS,) multipliers with the entries the traced rows wrote: runs of entries no
+    row touched are copied as one slice each (stacking all 24 entries one by one costs the
+    compiled sweep a kernel per entry, for every joint colour and iteration)."""
+    pieces, k = [], 0
+    while k < len(lam):
+        stop = k + 1
+        same = lam[k] is untouched[k]
+        while stop < len(lam) and (lam[stop] is untouched[stop]) == same:
+            stop += 1
+        pieces.append(multipliers[k:stop] if same else jnp.stack(lam[k:stop]))
+        k = stop
+    return pieces[0] if len(pieces) == 1 else jnp.concatenate(pieces)

@@ -86,10 +86,25 @@ class BodyPair(NamedTuple):
 
     def current_quats(self) -> tuple[jnp.ndarray, jnp.ndarray]:
         """Orientations at X* + dX (what the non-linear update of DBD 4.1 evaluates at)."""
-        return (
-            integrator.displaced_quat(self.quat_a, self.dtheta_a),
-            integrator.displaced_quat(self.quat_b, self.dtheta_b),
+        # Both sides as one (2, 4) computation, as `rotate_pair`.
+        both = integrator.displaced_quat(
+            jnp.stack([self.quat_a, self.quat_b]), jnp.stack([self.dtheta_a, self.dtheta_b])
         )
+        return both[0], both[1]
+
+
+def rotate_pair(quat_a, quat_b, vector_a, vector_b) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(quat_rotate(quat_a, vector_a), quat_rotate(quat_b, vector_b)) as one stacked computation.
+
+    The same arithmetic per element in fewer compiled kernels: the solver's sweeps are a long
+    chain of tiny operations, and on CPU each kernel costs more than its arithmetic. (Measured on
+    the humanoid's joint projection: stacking the two sides' orientations and rotations cut its
+    kernels by a quarter; stacking the inertia products or point responses did not help.)"""
+    lead = jnp.broadcast_shapes(*(jnp.shape(x)[:-1] for x in (quat_a, quat_b, vector_a, vector_b)))
+    quats = jnp.stack([jnp.broadcast_to(q, lead + (4,)) for q in (quat_a, quat_b)])
+    vectors = jnp.stack([jnp.broadcast_to(v, lead + (3,)) for v in (vector_a, vector_b)])
+    both = math.quat_rotate(quats, vectors)
+    return both[0], both[1]
 
 
 def anchor_points(pair: BodyPair, local_anchor_a, local_anchor_b, world_a, world_b, quat_a, quat_b):
@@ -101,8 +116,7 @@ def anchor_points(pair: BodyPair, local_anchor_a, local_anchor_b, world_a, world
     solved as precisely as one at the origin. For the world side the anchor itself is the origin
     and the arm is zero.
     """
-    arm_a = math.quat_rotate(quat_a, local_anchor_a)
-    arm_b = math.quat_rotate(quat_b, local_anchor_b)
+    arm_a, arm_b = rotate_pair(quat_a, quat_b, local_anchor_a, local_anchor_b)
     origin_a = pair.origin_a + jnp.where(world_a, arm_a, 0.0)
     origin_b = pair.origin_b + jnp.where(world_b, arm_b, 0.0)
     arm_a = jnp.where(world_a, 0.0, arm_a)

@@ -48,10 +48,16 @@ def body_table(model: Model, state: State, h: float) -> BodySet:
     )
 
 
-def _project(family: Family, table: BodySet, dx, dtheta, multipliers):
-    """Every node of `family` at once: moved rows (M * S, 3) twice, and new multipliers."""
-    bodies = table._replace(dx=dx, dtheta=dtheta)
-    bodies = jax.tree.map(lambda column: column[family.bodies], bodies)  # (M, S, ...)
+def _fixed(table: BodySet, index) -> BodySet:
+    """The columns of `table` that stay put during the sweeps (all but dx, dtheta), gathered at
+    `index` once per solve rather than once per colour and iteration."""
+    return jax.tree.map(lambda column: column[index], table._replace(dx=None, dtheta=None))
+
+
+def _project(family: Family, fixed: BodySet, dx, dtheta, multipliers):
+    """Every node of `family` at once: moved rows (M * S, 3) twice, and new multipliers.
+    fixed: `_fixed(table, family.bodies)`."""
+    bodies = fixed._replace(dx=dx[family.bodies], dtheta=dtheta[family.bodies])  # (M, S, ...)
     moved_dx, moved_dtheta, multipliers = jax.vmap(family.project)(family.params, family.static, bodies, multipliers)
     return moved_dx.reshape(-1, 3), moved_dtheta.reshape(-1, 3), multipliers
 
@@ -117,7 +123,9 @@ def gauss_seidel(
     Consecutive colours with the same families (a ragdoll's joint colours) run as one `lax.scan`
     over the colours (`_Run`), so each family's projection is compiled once, not once per colour:
     the compile time of a jointed model no longer grows with its number of colours. A colour of
-    its own (different families from its neighbours) is unrolled as before.
+    its own (different families from its neighbours) is unrolled as before. What does not change
+    during the sweeps (the poses, masses, inertias and velocities of the bodies each node reads)
+    is gathered once, before them.
     """
     n = table.dx.shape[0] - 1
     present = [[f for f, nodes in enumerate(colour.nodes) if len(nodes.array)] for colour in colours]
@@ -126,6 +134,8 @@ def gauss_seidel(
     bounds = _runs(present)
     single = {first: [constraints.gather(families[f], colours[first].nodes[f].array) for f in present[first]]
               for (first, stop), run in zip(bounds, runs, strict=True) if run is None}  # fmt: skip
+    single_fixed = {first: [_fixed(table, family.bodies) for family in members] for first, members in single.items()}
+    run_fixed = [None if run is None else [_fixed(table, family.bodies) for family in run.families] for run in runs]
 
     def start_multipliers(first, run):
         if run is None:
@@ -142,9 +152,10 @@ def gauss_seidel(
     def iteration(carry, _):
         dx, dtheta, lams = carry
         updated = []
-        for (first, _), run, run_lams in zip(bounds, runs, lams, strict=True):
+        for (first, _), run, run_lams, fixed in zip(bounds, runs, lams, run_fixed, strict=True):
             if run is None:
-                moved = [_project(f, table, dx, dtheta, lam) for f, lam in zip(single[first], run_lams, strict=True)]
+                members = zip(single[first], single_fixed[first], run_lams, strict=True)
+                moved = [_project(f, rows, dx, dtheta, lam) for f, rows, lam in members]
                 dx, dtheta = write_back(moved, dx, dtheta, colours[first].body_slot.array)
                 updated.append([m[2] for m in moved])
                 continue
@@ -152,12 +163,12 @@ def gauss_seidel(
             def colour(carry, xs, run=run):
                 dx, dtheta = carry
                 parts, slot, colour_lams = xs
-                moved = [_project(family._replace(bodies=bodies, params=params, static=static), table, dx, dtheta, lam)
-                         for family, (bodies, params, static), lam in zip(run.families, parts, colour_lams,
-                                                                          strict=True)]  # fmt: skip
+                moved = [_project(family._replace(bodies=bodies, params=params, static=static), rows, dx, dtheta, lam)
+                         for family, (bodies, params, static, rows), lam in zip(run.families, parts, colour_lams,
+                                                                                strict=True)]  # fmt: skip
                 return write_back(moved, dx, dtheta, slot), [m[2] for m in moved]
 
-            parts = [(f.bodies, f.params, f.static) for f in run.families]
+            parts = [(f.bodies, f.params, f.static, rows) for f, rows in zip(run.families, fixed, strict=True)]
             (dx, dtheta), new = jax.lax.scan(colour, (dx, dtheta), (parts, run.body_slot, run_lams))
             updated.append(new)
         return (dx, dtheta, updated), None
@@ -187,10 +198,11 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
     used = [f for f, family in enumerate(families) if len(family.bodies)]
     touched = np.concatenate([families[f].bodies.reshape(-1) for f in used])
     share = jnp.asarray(1.0 / np.maximum(np.bincount(touched, minlength=n + 1), 1), table.dx.dtype)[:, None]
+    fixed = [_fixed(table, families[f].bodies) for f in used]
 
     def iteration(carry, _):
         dx, dtheta, lams = carry
-        moved = [_project(families[f], table, dx, dtheta, lam) for f, lam in zip(used, lams, strict=True)]
+        moved = [_project(families[f], rows, dx, dtheta, lam) for f, rows, lam in zip(used, fixed, lams, strict=True)]
         dx_rows = jnp.concatenate([m[0] for m in moved]) - dx[touched]
         dtheta_rows = jnp.concatenate([m[1] for m in moved]) - dtheta[touched]
         dx = dx + jax.ops.segment_sum(dx_rows, touched, n + 1) * share
