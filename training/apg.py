@@ -64,7 +64,7 @@ class APGConfig:
     hidden: tuple[int, ...] = (64, 64)
     remat: bool = True
     normalise_observations: bool = True
-    init_scale: float = 0.01
+    init_scale: float = 0.0
 
 
 class TrainState(NamedTuple):
