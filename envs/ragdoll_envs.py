@@ -80,8 +80,8 @@ class RagdollEnv(DbdFuncEnv):
 
     height (m), mass (kg), drive_stiffness, drive_damping, max_torque: `ragdoll.build`'s
     (None: its defaults). push_interval: s between pushes on average (None: no pushes).
-    push_speed: (low, high) m/s (module docstring: why 0.2-0.6). fall_height: m, the pelvis height that ends the episode (None:
-    0.55 x the standing height). smooth_weight: weight of the action-change penalty.
+    push_speed: (low, high) m/s (module docstring: why 0.2-0.6). fall_height: m, the pelvis height
+    that ends the episode (None: 0.55 x the standing height). smooth_weight: weight of the action-change penalty.
     """
 
     default_max_episode_steps = 300
