@@ -91,10 +91,8 @@ def update_normaliser(stats: Normaliser, batch: jnp.ndarray) -> Normaliser:
 #: EmpiricalNormalization, legged_gym's PPO, adds the same 0.01): it bounds the network's gain on
 #: an observation to 100 / unit. With 1e-8 instead, an entry that barely moves while the doll
 #: stands (53 of the 133 ragdoll observations have a std under 1e-3 in the first rollout) is
-#: blown up to the +-10 clip by sub-millimetre motion, and as soon as training makes the last
-#: layer non-zero the policy is a feedback of enormous gain on noise: APG at a rate of 3e-5 made
-#: the ragdoll fall (return per step 0.99 -> 0.70 within 10 updates) while the output bias moved
-#: by under 4e-4.
+#: blown up to the +-10 clip by sub-millimetre motion. (This alone did not stop APG's collapse on
+#: RagdollStand-v0: README, "Why training made the policy worse".)
 NORMALISER_EPS = 0.01
 
 
