@@ -425,7 +425,9 @@ def test_pushes_come_at_the_documented_rate_with_horizontal_kicks_of_the_documen
     rate = stand.dt / stand.push_interval  # 1/60 per step
     assert abs(pushed.mean() - rate) < 4 * np.sqrt(rate * (1 - rate) / count)
     speed = np.linalg.norm(kicks[pushed], axis=1)
-    assert np.all(kicks[:, 2] == 0.0) and speed.min() >= 0.5 - 1e-6 and speed.max() <= 1.5 + 1e-6
+    # The default range, 0.2-0.6 m/s (envs/ragdoll_envs.py: survivable with the feet in place).
+    assert np.all(kicks[:, 2] == 0.0) and speed.min() >= 0.2 - 1e-6 and speed.max() <= 0.6 + 1e-6
+    assert speed.min() < 0.22 and speed.max() > 0.58  # the whole range is drawn (~670 kicks)
     state, _, _ = stand.reset(jax.random.PRNGKey(3))
     key = jax.random.PRNGKey(4)
     kicked = stand.task_before_physics(state, jnp.zeros(26), key)

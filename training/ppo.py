@@ -58,8 +58,9 @@ from . import rl
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
-    """PPO hyper-parameters (defaults: the RagdollStand-v0 run of benchmarks/results, except the
-    starting learning rate, 3e-4 there: its first update moved the policy by a KL of 111).
+    """PPO hyper-parameters. The run in benchmarks/results/ppo_ragdoll_stand.json used these with
+    unroll_length 16, num_minibatches 2 and noise_correlation 0.9 (README: Reinforcement learning);
+    the starting learning rate is 3e-5 since a start at 3e-4 moved the policy by a KL of 111.
 
     num_envs: envs stepped together (vmap). unroll_length: steps per env per iteration; an
     iteration has num_envs x unroll_length transitions, split into num_minibatches minibatches
@@ -79,6 +80,15 @@ class PPOConfig:
     (kept in [1e-5, 1e-2]); `learning_rate` is then its starting value (no decay). A small
     exploration std makes a fixed Adam step a large change of the policy (the KL of a mean shift
     grows as 1 / std^2): the adaptive rate keeps each update's change of the policy bounded.
+    noise_correlation: rho in [0, 1), the exploration noise is AR(1) in time, noise_t = rho
+    noise_{t-1} + sqrt(1 - rho^2) std xi_t (stationary std `exp(log_std)`, correlation time
+    1 / (1 - rho) steps; a new episode starts from a stationary draw). 0: independent per step.
+    Independent noise of a size the standing doll tolerates averages out within a few steps
+    (the stiff drives undo a one-step target error), so its effect on the return, hence the
+    policy gradient's signal, is small next to the pushes' randomness; correlated noise of the
+    same size holds a deviation (a lean, say) long enough to matter. The step's policy is
+    N(mean + rho noise_{t-1}, (sqrt(1 - rho^2) std)^2) with noise_{t-1} part of the state it acts
+    in (Transition.shift), so the likelihood ratios stay exact.
     """
 
     num_envs: int = 32
@@ -97,6 +107,7 @@ class PPOConfig:
     normalise_observations: bool = True
     reward_scale: float = 0.1
     desired_kl: float | None = 0.01
+    noise_correlation: float = 0.0
 
     @property
     def batch_size(self) -> int:
@@ -115,11 +126,13 @@ class TrainState(NamedTuple):
     episode_return: jnp.ndarray  # (num_envs,) return so far of the running episodes
     episode_length: jnp.ndarray  # (num_envs,) int32
     key: jnp.ndarray
+    noise: jnp.ndarray  # (num_envs, A) the exploration noise of the last action (action - mean)
 
 
 class Transition(NamedTuple):
     obs: jnp.ndarray
     action: jnp.ndarray
+    shift: jnp.ndarray  # the correlated part of the noise, rho x the last noise (zeros when rho = 0)
     log_prob: jnp.ndarray
     value: jnp.ndarray
     reward: jnp.ndarray
@@ -132,14 +145,20 @@ Result = rl.Result
 
 
 def init_params(task: DbdFuncEnv, config: PPOConfig, key: jax.Array) -> dict:
-    """{"policy": MLP obs -> residual action (last layer x0.01), "value": MLP obs -> (), "log_std": (A,)}."""
+    """{"policy": MLP obs -> residual action (last layer zero: the untrained policy's mean is exactly
+    the home action, whatever the observation statistics), "value": MLP obs -> (), "log_std": (A,)}."""
     policy_key, value_key = jax.random.split(key)
     sizes = (task.observation_size, *config.hidden)
     return {
-        "policy": rl.init_mlp(policy_key, (*sizes, task.action_size), last_scale=0.01),
+        "policy": rl.init_mlp(policy_key, (*sizes, task.action_size), last_scale=0.0),
         "value": rl.init_mlp(value_key, (*sizes, 1), last_scale=1.0),
         "log_std": jnp.full((task.action_size,), config.init_log_std, jnp.float32),
     }
+
+
+def _innovation_log_std(log_std, rho):
+    """log std of the fresh part of AR(1) noise of stationary std exp(log_std): sqrt(1 - rho^2) x std."""
+    return log_std + 0.5 * math.log(1.0 - rho**2)
 
 
 def _gaussian_log_prob(mean, log_std, x):
@@ -187,10 +206,16 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
 
     def env_step(carry: TrainState, _):
         params, stats = carry.params, carry.stats
-        key, action_key, reset_key = jax.random.split(carry.key, 3)
+        key, action_key, reset_key, noise_key = jax.random.split(carry.key, 4)
         mean, value = networks(params, stats, carry.obs)
-        action = mean + jnp.exp(params["log_std"]) * jax.random.normal(action_key, mean.shape)
-        log_prob = _gaussian_log_prob(mean, params["log_std"], action)
+        # AR(1) exploration noise: noise_t = rho noise_{t-1} + sqrt(1 - rho^2) std xi_t (stationary
+        # std exp(log_std)); the policy of the step is N(mean + rho noise_{t-1}, (sqrt(1 - rho^2) std)^2),
+        # the last noise being part of the state the action is drawn in (stored as `shift`).
+        rho = config.noise_correlation
+        shift = rho * carry.noise
+        innovation = _innovation_log_std(params["log_std"], rho)
+        action = mean + shift + jnp.exp(innovation) * jax.random.normal(action_key, mean.shape)
+        log_prob = _gaussian_log_prob(mean + shift, innovation, action)
         env_state, next_obs, reward, terminated, truncated, _ = step_envs(carry.env_state, action)
         reward = reward.astype(jnp.float32)
         done = terminated | truncated
@@ -210,7 +235,10 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
             "length": jnp.sum(jnp.where(done, episode_length, 0)),
             "full": jnp.sum(truncated),
         }
+        # A new episode draws its first noise from the stationary distribution.
+        fresh_noise = jnp.exp(params["log_std"]) * jax.random.normal(noise_key, mean.shape)
         new_carry = carry._replace(
+            noise=jnp.where(done[:, None], fresh_noise, action - mean),
             env_state=env_state,
             obs=obs,
             episode_return=jnp.where(done, 0.0, episode_return),
@@ -218,7 +246,7 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
             key=key,
         )
         return new_carry, (
-            Transition(carry.obs, action, log_prob, value, reward, next_obs, terminated, truncated),
+            Transition(carry.obs, action, shift, log_prob, value, reward, next_obs, terminated, truncated),
             ended,
         )
 
@@ -242,7 +270,8 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
 
     def loss_function(params, stats, minibatch, advantage, target):
         mean, value = networks(params, stats, minibatch.obs)
-        log_prob = _gaussian_log_prob(mean, params["log_std"], minibatch.action)
+        innovation = _innovation_log_std(params["log_std"], config.noise_correlation)
+        log_prob = _gaussian_log_prob(mean + minibatch.shift, innovation, minibatch.action)
         ratio = jnp.exp(log_prob - minibatch.log_prob)
         normalised = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
         surrogate = jnp.minimum(
@@ -277,15 +306,17 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
     @jax.jit
     def iteration(state: TrainState):
         state, (batch, ended) = rollout(state)
+        # The statistics are updated before the updates (as Brax's PPO does): the networks are
+        # fitted on the normalisation the next rollout will act with.
+        stats = rl.update_normaliser(state.stats, batch.obs) if config.normalise_observations else state.stats
         advantage, target = advantages(state.params, state.stats, batch)
         flat = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), (batch, advantage, target))
         key, epoch_key = jax.random.split(state.key)
         (params, opt_state, _, _), info = jax.lax.scan(
             update_epoch,
-            (state.params, state.opt_state, state.stats, flat),
+            (state.params, state.opt_state, stats, flat),
             jax.random.split(epoch_key, config.update_epochs),
         )
-        stats = rl.update_normaliser(state.stats, batch.obs) if config.normalise_observations else state.stats
         ended = jax.tree.map(jnp.sum, ended)
         count = jnp.maximum(ended["count"], 1)
         metrics = {
@@ -338,8 +369,10 @@ def train(
     iterations = None if total_steps is None else max(1, -(-total_steps // config.batch_size))
     optimiser = make_optimiser(config, iterations)
     clock = rl.Clock()
+    if not 0.0 <= config.noise_correlation < 1.0:
+        raise ValueError(f"train: noise_correlation must be in [0, 1), got {config.noise_correlation!r}")
     key = jax.random.PRNGKey(seed)
-    key, init_key, env_key = jax.random.split(key, 3)
+    key, init_key, env_key, noise_key = jax.random.split(key, 4)
     params = init_params(task, config, init_key)
     env_state, obs, _ = jax.jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
     state = TrainState(
@@ -351,6 +384,7 @@ def train(
         episode_return=jnp.zeros((config.num_envs,), jnp.float32),
         episode_length=jnp.zeros((config.num_envs,), jnp.int32),
         key=key,
+        noise=jnp.exp(params["log_std"]) * jax.random.normal(noise_key, (config.num_envs, task.action_size)),
     )
 
     def failure(row: dict) -> str | None:
@@ -399,6 +433,10 @@ def main(argv: list[str] | None = None) -> Result:
     parser.add_argument("--init-log-std", type=float, default=defaults.init_log_std)
     parser.add_argument("--reward-scale", type=float, default=defaults.reward_scale)
     parser.add_argument(
+        "--noise-correlation", type=float, default=defaults.noise_correlation,
+        help="rho of the AR(1) exploration noise in time (0: independent per step)",
+    )  # fmt: skip
+    parser.add_argument(
         "--desired-kl",
         type=float,
         default=defaults.desired_kl,
@@ -410,7 +448,7 @@ def main(argv: list[str] | None = None) -> Result:
     config = PPOConfig(num_envs=args.num_envs, unroll_length=args.unroll, num_minibatches=args.minibatches,
                        update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma, entropy_coef=args.entropy,
                        init_log_std=args.init_log_std, reward_scale=args.reward_scale,
-                       desired_kl=args.desired_kl,
+                       desired_kl=args.desired_kl, noise_correlation=args.noise_correlation,
                        hidden=tuple(args.hidden))  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
     result = train(rl.task_of(args), config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,

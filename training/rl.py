@@ -10,7 +10,8 @@ is elsewhere (e.g. the middle of a one-sided range). It changes where the search
 what the agent may do (every action in [-1, 1] stays reachable).
 
 Observation normalisation: running mean and variance over every observation seen in training
-(batched Welford/Chan update), the network sees (obs - mean) / sqrt(var + 1e-8) clipped to +-10.
+(batched Welford/Chan update), the network sees (obs - mean) / (sqrt(var) + 0.01) clipped to +-10
+(`NORMALISER_EPS`).
 """
 
 from __future__ import annotations
@@ -86,9 +87,19 @@ def update_normaliser(stats: Normaliser, batch: jnp.ndarray) -> Normaliser:
     return Normaliser(mean, m2 / total, total)
 
 
+#: Added to each observation's standard deviation before dividing by it (rsl_rl's
+#: EmpiricalNormalization, legged_gym's PPO, adds the same 0.01): it bounds the network's gain on
+#: an observation to 100 / unit. With 1e-8 instead, an entry that barely moves while the doll
+#: stands (53 of the 133 ragdoll observations have a std under 1e-3 in the first rollout) is
+#: blown up to the +-10 clip by sub-millimetre motion. (This alone did not stop APG's collapse on
+#: RagdollStand-v0: README, "Why training made the policy worse".)
+NORMALISER_EPS = 0.01
+
+
 def normalise(stats: Normaliser, obs: jnp.ndarray) -> jnp.ndarray:
-    """(obs - mean) / std, clipped to +-10 (the identity before any update: mean 0, var 1)."""
-    return jnp.clip((obs - stats.mean) * jax.lax.rsqrt(stats.var + 1e-8), -10.0, 10.0)
+    """(obs - mean) / (std + `NORMALISER_EPS`), clipped to +-10 (before any update, with mean 0 and
+    var 1: obs / 1.01)."""
+    return jnp.clip((obs - stats.mean) / (jnp.sqrt(stats.var) + NORMALISER_EPS), -10.0, 10.0)
 
 
 def home_action(task: DbdFuncEnv) -> jnp.ndarray:
@@ -259,7 +270,10 @@ def run(
                    env_steps_per_s=index * steps_per_iteration / train_wall,
                    load_average_at_start=clock.load_at_start, max_episode_steps=task.max_episode_steps,
                    evaluation=scalars(evaluation), evaluation_lengths=evaluation["lengths"].tolist(),
+                   evaluation_returns=evaluation["returns"].tolist(),
                    initial_evaluation=None if initial_evaluation is None else scalars(initial_evaluation),
+                   initial_evaluation_returns=None if initial_evaluation is None
+                   else initial_evaluation["returns"].tolist(),
                    machine=machine())  # fmt: skip
     return Result(params, history, evaluation, initial_evaluation, summary)
 
@@ -318,7 +332,8 @@ def finish(args, name: str, result: Result, counts: str) -> None:
     stem = args.name or f"{name}_" + env_stem(args.env)
     env_args = list(getattr(args, "env_arg", []))
     title = f"{name.upper()} on {args.env}" + (f" ({', '.join(env_args)})" if env_args else "")
-    result.summary.update(env=args.env, env_args=env_args, title=title)
+    command = "python -m dbdjax.training." + name + " " + " ".join(sys.argv[1:])
+    result.summary.update(env=args.env, env_args=env_args, title=title, command=command)
     paths = save_result(args.out, stem, result.params, result.history, result.summary, plot=not args.no_plot)
     s, e = result.summary, result.evaluation
     print(f"{name} on {args.env}: {counts}{s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall "
