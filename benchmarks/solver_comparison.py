@@ -754,7 +754,8 @@ def plot_blow_up(results: list[dict], path: pathlib.Path) -> None:
         axis.set_title(scene, fontsize=8)
     for axis in list(axes.flat)[len(scenes) :]:
         axis.axis("off")
-    figure.suptitle("blew up (red x: non-finite or a body over 100 m/s; white: did not; grey: no result)", fontsize=9)
+    figure.suptitle("blew up (red x: non-finite, a body over 100 m/s, or one turning over pi in a step; white: did "
+                    "not; grey: no result)", fontsize=9)  # fmt: skip
     figure.tight_layout()
     figure.savefig(path, dpi=110)
     plt.close(figure)
