@@ -464,14 +464,17 @@ def project(
         )  # fmt: skip
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
-    # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83).
+    # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83), projected as
+    # one (`_nearer_bound`).
     if "has_angle_limits" in rows:
-        for index, sign in ((ANGLE_LOWER, -1.0), (ANGLE_UPPER, 1.0)):
-            angle, axis = hinge_angle(joint, pair)
-            error = (angle - joint.lower) if sign < 0 else (joint.upper - angle)
-            pair, lam[index], hold = row.angular_row(
-                pair, sign * axis, error, lam[index], hard(flag.has_angle_limits, inequality=True), hold=hold
-            )
+        angle, axis = hinge_angle(joint, pair)
+        sign, error, upper_row = _nearer_bound(angle, joint.lower, joint.upper)
+        multiplier = jnp.where(upper_row, lam[ANGLE_UPPER], lam[ANGLE_LOWER])
+        pair, multiplier, hold = row.angular_row(
+            pair, sign * axis, error, multiplier, hard(flag.has_angle_limits, inequality=True), hold=hold
+        )
+        lam[ANGLE_LOWER] = jnp.where(upper_row, lam[ANGLE_LOWER], multiplier)
+        lam[ANGLE_UPPER] = jnp.where(upper_row, multiplier, lam[ANGLE_UPPER])
 
     # Cone: the angle between the twist axes stays below the limit, DBD (81)-(83).
     if "has_cone" in rows:
@@ -484,28 +487,30 @@ def project(
         )
 
     # Universal / gimbal hinge limits: t_k in [lower_k, upper_k] by two one-sided rows per hinge
-    # (SI (108), (115)), clamped as DBD (83); dc/dtheta_b = +-g_k: its impulse is the generalised
-    # force on hinge k alone.
-    # Both rows of a hinge read one evaluation of its angle: at most one of them acts (a lower row
-    # that pushes leaves the angle below the upper bound, where the upper row is clamped to 0).
+    # (SI (108), (115)), clamped as DBD (83), projected as one (`_nearer_bound`); dc/dtheta_b =
+    # +-g_k: its impulse is the generalised force on hinge k alone.
     if "euler_limited" in rows:
         for k in range(3):
             angles, directions = _euler_angles(joint, flag, pair, rows)
-            for index, sign in ((EULER_LOWER + k, -1.0), (EULER_UPPER + k, 1.0)):
-                error = (angles[k] - joint.axis_lower[k]) if sign < 0 else (joint.axis_upper[k] - angles[k])
-                pair, lam[index], hold = row.angular_row(
-                    pair, sign * directions[k], error, lam[index], hard(flag.euler_limited[k], inequality=True),
-                    hold=hold,
-                )  # fmt: skip
-
-    # Slider travel limits, SI (65)-(78), on the travel d = (p_b - p_a) . axis.
-    if "has_travel_limits" in rows:
-        for index, sign, bound in ((TRAVEL_LOWER, -1.0, joint.lower), (TRAVEL_UPPER, 1.0, joint.upper)):
-            travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
-            error = (travel - bound) if sign < 0 else (bound - travel)
-            pair, lam[index] = row.positional_row(
-                pair, sign * axis, arm_a, arm_b, error, lam[index], hard(flag.has_travel_limits, inequality=True)
+            sign, error, upper_row = _nearer_bound(angles[k], joint.axis_lower[k], joint.axis_upper[k])
+            multiplier = jnp.where(upper_row, lam[EULER_UPPER + k], lam[EULER_LOWER + k])
+            pair, multiplier, hold = row.angular_row(
+                pair, sign * directions[k], error, multiplier, hard(flag.euler_limited[k], inequality=True), hold=hold
             )
+            lam[EULER_LOWER + k] = jnp.where(upper_row, lam[EULER_LOWER + k], multiplier)
+            lam[EULER_UPPER + k] = jnp.where(upper_row, multiplier, lam[EULER_UPPER + k])
+
+    # Slider travel limits, SI (65)-(78), on the travel d = (p_b - p_a) . axis, the two one-sided
+    # rows projected as one (`_nearer_bound`).
+    if "has_travel_limits" in rows:
+        travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
+        sign, error, upper_row = _nearer_bound(travel, joint.lower, joint.upper)
+        multiplier = jnp.where(upper_row, lam[TRAVEL_UPPER], lam[TRAVEL_LOWER])
+        pair, multiplier = row.positional_row(
+            pair, sign * axis, arm_a, arm_b, error, multiplier, hard(flag.has_travel_limits, inequality=True)
+        )
+        lam[TRAVEL_LOWER] = jnp.where(upper_row, lam[TRAVEL_LOWER], multiplier)
+        lam[TRAVEL_UPPER] = jnp.where(upper_row, multiplier, lam[TRAVEL_UPPER])
 
     # Point constraint last, so the joint gap is what this sweep leaves smallest: c = p_a - p_b as
     # one block of three rows with the full 3x3 effective mass, DBD (64)-(66). Not the magnitude
@@ -530,6 +535,21 @@ def project(
     lam[POINT : POINT + 3] = list(point)
     dx, dtheta = pair.displacements()
     return dx, dtheta, _restacked(multipliers, lam, untouched)
+
+
+def _nearer_bound(value, lower, upper):
+    """The one of the two limit rows lower <= value <= upper that can act: (sign of its direction,
+    -1 for the lower row and +1 for the upper, its error (value - lower or upper - value), True
+    where it is the upper row).
+
+    Both rows only push (DBD (83)) and their multipliers start the substep at zero, so a row
+    whose error is positive never steps. With lower <= upper at most one error is negative, the
+    one of the nearer bound: projecting that row alone moves the bodies exactly as projecting
+    both in turn, with half the rows in the compiled sweep (each of which the reverse pass keeps
+    residuals for)."""
+    below, above = value - lower, upper - value
+    upper_row = above < below
+    return jnp.where(upper_row, 1.0, -1.0), jnp.where(upper_row, above, below), upper_row
 
 
 def _restacked(multipliers: jnp.ndarray, lam: list, untouched: list) -> jnp.ndarray:

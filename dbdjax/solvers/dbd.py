@@ -58,7 +58,15 @@ def _project(family: Family, fixed: BodySet, dx, dtheta, multipliers):
     """Every node of `family` at once: moved rows (M * S, 3) twice, and new multipliers.
     fixed: `_fixed(table, family.bodies)`."""
     bodies = fixed._replace(dx=dx[family.bodies], dtheta=dtheta[family.bodies])  # (M, S, ...)
-    moved_dx, moved_dtheta, multipliers = jax.vmap(family.project)(family.params, family.static, bodies, multipliers)
+    # Rematerialised in reverse mode: the backward pass recomputes each projection from its inputs
+    # instead of keeping its hundreds of small intermediates. Inside the sweeps' scans every kept
+    # intermediate is a separate array stacked per colour and iteration (a dynamic-update-slice
+    # kernel each, and a slice of it on the way back), which cost more to compile, to store and to
+    # read back than recomputing the projection does. Measured on the ant (4 iterations, CPU):
+    # grad of a 100-step rollout compiled in 85 s instead of 119 s, ran in 0.30 s instead of
+    # 0.55 s, with 3.4 MB of temporaries instead of 35 MB; forward passes are unchanged.
+    project = jax.checkpoint(family.project)
+    moved_dx, moved_dtheta, multipliers = jax.vmap(project)(family.params, family.static, bodies, multipliers)
     return moved_dx.reshape(-1, 3), moved_dtheta.reshape(-1, 3), multipliers
 
 
