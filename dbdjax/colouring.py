@@ -72,15 +72,9 @@ def colour_groups(
     for colour in range(max(colours, default=-1) + 1):
         members = [[m for (f, m), c in zip(nodes, colours, strict=True) if f == family and c == colour]
                    for family in range(len(family_bodies))]  # fmt: skip
-        rows = sum(len(indices) * table.shape[1] for table, indices in zip(family_bodies, members, strict=True))
-        body_slot = rows + np.arange(num_bodies + 1, dtype=np.int32)  # untouched: the previous row
-        offset = 0
-        for table, indices in zip(family_bodies, members, strict=True):
-            for m in indices:
-                for body in table[m]:
-                    if body < num_bodies:
-                        body_slot[body] = offset
-                    offset += 1
+        body_slot = write_back_slots(
+            [table[indices] for table, indices in zip(family_bodies, members, strict=True)], num_bodies
+        )
         groups.append(
             Colour(
                 nodes=tuple(StaticArray(np.asarray(indices, dtype=np.int32)) for indices in members),
@@ -88,3 +82,24 @@ def colour_groups(
             )
         )
     return tuple(groups)
+
+
+def write_back_slots(tables: Sequence[np.ndarray], num_bodies: int, real: Sequence[int] | None = None) -> np.ndarray:
+    """Where each body's displacement is found after a colour (`Colour.body_slot`), (N + 1,) int.
+
+    tables: per family, the (M_f, S_f) bodies of the nodes projected in the colour, laid out as
+    the solver concatenates their rows: every family's node rows in order (each node's S_f bodies
+    in turn), then the N + 1 previous rows (a body no node moves keeps its previous row). real: the
+    number of leading nodes of each table whose rows are read back (the rest pad the table; all by
+    default). The world (num_bodies) is never read back."""
+    real = [len(table) for table in tables] if real is None else real
+    rows = sum(table.shape[0] * table.shape[1] for table in tables)
+    body_slot = rows + np.arange(num_bodies + 1, dtype=np.int32)
+    offset = 0
+    for table, count in zip(tables, real, strict=True):
+        for m, node in enumerate(table):
+            for s, body in enumerate(node):
+                if m < count and body < num_bodies:
+                    body_slot[body] = offset + m * table.shape[1] + s
+        offset += table.shape[0] * table.shape[1]
+    return body_slot

@@ -29,6 +29,8 @@ class Family(NamedTuple):
     static: pytree of numpy arrays with leading axis M (flags fixed at finalize).
     project(params, static, bodies: BodySet, multipliers) -> (dx (S, 3), dtheta (S, 3), multipliers),
       for one node (the solver vmaps it). num_multipliers: the size of one node's multipliers.
+    variants: ((nodes (K,) int, project), ...) partitioning the nodes, each part with a projection
+      that traces only the rows its nodes have (the joints, by kind); () for one projection of all.
     """
 
     name: str
@@ -37,6 +39,7 @@ class Family(NamedTuple):
     static: Any
     project: Callable
     num_multipliers: int
+    variants: tuple = ()
 
 
 def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...], h: float,
@@ -56,12 +59,15 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
     if start is not None and predicted is not None and structure.joint_rotor.array.any():
         offsets, reference = joints.rotor_offsets(model, predicted, start, h, with_reference=True)
     joint_targets = joints.targets(structure, control, dtype, gear, offsets, reference)
-    rows = joints.rows_in_use(structure)
+
+    def project_joints(rows):
+        return lambda p, flag, bodies, lam: joints.project(p[0], flag, p[1], bodies, lam, h, rows)
+
     result = [
         Family(
             "joints", tables[0], (model.joints, joint_targets), joints.flags(structure),
-            lambda p, flag, bodies, lam: joints.project(p[0], flag, p[1], bodies, lam, h, rows),
-            joints.NUM_MULTIPLIERS,
+            project_joints(joints.rows_in_use(structure)), joints.NUM_MULTIPLIERS,
+            tuple((members, project_joints(rows)) for members, rows in joints.variants(structure)),
         ),
         Family("springs", tables[1], model.springs, on_world(tables[1]),
                functools.partial(links.project_spring, h=h), 1),

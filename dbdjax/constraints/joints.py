@@ -245,6 +245,17 @@ def rows_in_use(structure: Structure) -> frozenset[str]:
     return _rows_of(f, np.ones(len(f.hinge), bool))
 
 
+def variants(structure: Structure) -> list[tuple[np.ndarray, frozenset[str]]]:
+    """The joints grouped by kind (universal and gimbal together: the same hinge-angle rows), each
+    group with the rows some member has (`Family.variants`). The solver projects each group with
+    its own trace, so a knee does not evaluate a hip's three hinge angles nor a hip a knee's axle
+    lock: on Brax's humanoid that halves the work of a sweep."""
+    f = flags(structure)
+    kind = structure.joint_kind.array
+    group = np.where(kind == GIMBAL, UNIVERSAL, kind)
+    return [(np.flatnonzero(group == g), _rows_of(f, group == g)) for g in np.unique(group)]
+
+
 def _rows_of(f: JointFlags, members: np.ndarray) -> frozenset[str]:
     """The row names some joint of `members` (bool (J,)) has, as `rows_in_use`."""
     used = {name for name, values in f._asdict().items() if np.any(values[members])}

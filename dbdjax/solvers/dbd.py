@@ -5,8 +5,8 @@
     guess:    dX = 0, or with initial_guess="tree" dX and the joints' point multipliers from the
               exact linear solve of the joint tree's point constraints (solvers/tree.py)
     repeat `iterations` times:                                   (lax.scan)
-        for each colour, in order:                               (unrolled: a model has few)
-            for each constraint family present in the colour:
+        for each colour, in order:                               (runs of alike colours: lax.scan)
+            for each constraint family present in the colour (each variant of it: the joints by kind):
                 project all its nodes at once                    (jax.vmap, constraints/*.py)
             write back the displacements of the bodies moved     (one gather: no conflicts)
 
@@ -20,12 +20,15 @@ contact groups alone, moving velocities instead of displacements.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dbdjax import constraints, integrator
 from dbdjax.collision import ContactSlots
+from dbdjax.colouring import write_back_slots
 from dbdjax.constraints import Family, joints
 from dbdjax.constraints.rows import BodySet
 from dbdjax.model import Colour, Model, State, with_world_row
@@ -82,44 +85,51 @@ def _runs(present: list[list[int]]) -> list[tuple[int, int]]:
 
 
 class _Run:
-    """Colours first..stop-1 with the same families: stacked for one `lax.scan` over them.
+    """Colours first..stop-1 with the same families: stacked for one `lax.scan` over them (or
+    called once, for a colour of its own).
 
-    Each family's nodes are padded to the run's largest colour by repeating the colour's first
-    node (a real node: its arithmetic stays finite, so no NaN reaches a gradient); the padded rows
-    are never read back, since `body_slot` (recomputed here for the padded layout) points every
-    moved body at its real node's row.
+    A family with variants (`Family.variants`: the joints, one per kind) is projected as one
+    family per variant, each traced with only its own rows. Each projected family's nodes are
+    padded to the run's largest colour by repeating a real node of it (the colour's first, or the
+    variant's first in the run where the colour has none of that variant): its arithmetic stays
+    finite, so no NaN reaches a gradient. The padded rows are never read back, since `body_slot`
+    (built here for the padded layout) points every moved body at its real node's row.
     """
 
     def __init__(self, colours: tuple[Colour, ...], families: list[Family], first: int, stop: int, fs: list[int],
                  num_bodies: int):  # fmt: skip
-        self.first, self.stop, self.fs = first, stop, fs
-        self.nodes = [[colours[c].nodes[f].array for c in range(first, stop)] for f in fs]
-        self.width = [max(len(nodes) for nodes in per_colour) for per_colour in self.nodes]
-        self.index = [
-            np.stack([np.concatenate([nodes, np.repeat(nodes[:1], width - len(nodes))]) for nodes in per_colour])
-            for per_colour, width in zip(self.nodes, self.width, strict=True)
-        ]  # (R, M_f) node indices per family
-        self.families = []
-        for f, index in zip(fs, self.index, strict=True):
-            gathered = constraints.gather(families[f], index.reshape(-1))
-            reshape = lambda x, shape=index.shape: x.reshape(shape + x.shape[1:])  # noqa: E731
-            self.families.append(gathered._replace(
-                bodies=reshape(gathered.bodies), params=jax.tree.map(reshape, gathered.params),
-                static=jax.tree.map(reshape, gathered.static)))  # fmt: skip
-        rows = sum(width * family.bodies.shape[-1] for width, family in zip(self.width, self.families, strict=True))
-        slots = []
-        for r in range(stop - first):
-            slot = rows + np.arange(num_bodies + 1, dtype=np.int32)
-            offset = 0
-            for k, family in enumerate(self.families):
-                size = family.bodies.shape[-1]
-                for m in range(len(self.nodes[k][r])):
-                    for s, body in enumerate(family.bodies[r, m]):
-                        if body < num_bodies:
-                            slot[body] = offset + m * size + s
-                offset += self.width[k] * size
-            slots.append(slot)
-        self.body_slot = np.stack(slots)  # (R, N + 1)
+        self.length = stop - first
+        self.fs, self.nodes, self.index, self.families = [], [], [], []
+        for f in fs:
+            family = families[f]
+            variants = family.variants or ((np.arange(len(family.bodies)), family.project),)
+            for members, project in variants:
+                per_colour = [np.intersect1d(colours[c].nodes[f].array, members) for c in range(first, stop)]
+                present = [nodes for nodes in per_colour if len(nodes)]
+                if not present:
+                    continue
+                width = max(len(nodes) for nodes in present)
+                index = np.stack([np.concatenate([nodes, np.repeat((nodes if len(nodes) else present[0])[:1],
+                                                                   width - len(nodes))])
+                                  for nodes in per_colour])  # fmt: skip
+                gathered = constraints.gather(family, index.reshape(-1))
+                reshape = lambda x, shape=index.shape: x.reshape(shape + x.shape[1:])  # noqa: E731
+                self.fs.append(f)
+                self.nodes.append(per_colour)  # the real nodes of each colour (family node indices)
+                self.index.append(index)  # (R, M) padded node indices
+                self.families.append(gathered._replace(
+                    bodies=reshape(gathered.bodies), params=jax.tree.map(reshape, gathered.params),
+                    static=jax.tree.map(reshape, gathered.static), project=project, variants=()))  # fmt: skip
+        self.body_slot = np.stack(
+            [
+                write_back_slots(
+                    [family.bodies[r] for family in self.families],
+                    num_bodies,
+                    real=[len(nodes[r]) for nodes in self.nodes],
+                )
+                for r in range(self.length)
+            ]
+        )  # (R, N + 1)
 
 
 def gauss_seidel(
@@ -131,53 +141,38 @@ def gauss_seidel(
     Consecutive colours with the same families (a ragdoll's joint colours) run as one `lax.scan`
     over the colours (`_Run`), so each family's projection is compiled once, not once per colour:
     the compile time of a jointed model no longer grows with its number of colours. A colour of
-    its own (different families from its neighbours) is unrolled as before. What does not change
-    during the sweeps (the poses, masses, inertias and velocities of the bodies each node reads)
-    is gathered once, before them.
+    its own (different families from its neighbours) is unrolled. What does not change during the
+    sweeps (the poses, masses, inertias and velocities of the bodies each node reads) is gathered
+    once, before them.
     """
     n = table.dx.shape[0] - 1
     present = [[f for f, nodes in enumerate(colour.nodes) if len(nodes.array)] for colour in colours]
-    runs = [_Run(colours, families, first, stop, present[first], n) if stop - first > 1 else None
-            for first, stop in _runs(present)]  # fmt: skip
-    bounds = _runs(present)
-    single = {first: [constraints.gather(families[f], colours[first].nodes[f].array) for f in present[first]]
-              for (first, stop), run in zip(bounds, runs, strict=True) if run is None}  # fmt: skip
-    single_fixed = {first: [_fixed(table, family.bodies) for family in members] for first, members in single.items()}
-    run_fixed = [None if run is None else [_fixed(table, family.bodies) for family in run.families] for run in runs]
+    runs = [_Run(colours, families, first, stop, present[first], n) for first, stop in _runs(present)]
+    run_fixed = [[_fixed(table, family.bodies) for family in run.families] for run in runs]
+    start = [[multipliers[f][index] for f, index in zip(run.fs, run.index, strict=True)] for run in runs]
 
-    def start_multipliers(first, run):
-        if run is None:
-            return [multipliers[f][colours[first].nodes[f].array] for f in present[first]]
-        return [multipliers[f][index] for f, index in zip(run.fs, run.index, strict=True)]
-
-    start = [start_multipliers(first, run) for (first, _), run in zip(bounds, runs, strict=True)]
-
-    def write_back(moved, dx, dtheta, slot):
+    def colour(carry, xs, run):
+        """One colour: every family of the run projected at once, the moved bodies written back."""
+        dx, dtheta = carry
+        parts, slot, colour_lams = xs
+        moved = [_project(family._replace(bodies=bodies, params=params, static=static), rows, dx, dtheta, lam)
+                 for family, (bodies, params, static, rows), lam in zip(run.families, parts, colour_lams,
+                                                                        strict=True)]  # fmt: skip
         dx = jnp.concatenate([m[0] for m in moved] + [dx])[slot]
         dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta])[slot]
-        return dx, dtheta
+        return (dx, dtheta), [m[2] for m in moved]
 
     def iteration(carry, _):
         dx, dtheta, lams = carry
         updated = []
-        for (first, _), run, run_lams, fixed in zip(bounds, runs, lams, run_fixed, strict=True):
-            if run is None:
-                members = zip(single[first], single_fixed[first], run_lams, strict=True)
-                moved = [_project(f, rows, dx, dtheta, lam) for f, rows, lam in members]
-                dx, dtheta = write_back(moved, dx, dtheta, colours[first].body_slot.array)
-                updated.append([m[2] for m in moved])
-                continue
-
-            def colour(carry, xs, run=run):
-                dx, dtheta = carry
-                parts, slot, colour_lams = xs
-                moved = [_project(family._replace(bodies=bodies, params=params, static=static), rows, dx, dtheta, lam)
-                         for family, (bodies, params, static, rows), lam in zip(run.families, parts, colour_lams,
-                                                                                strict=True)]  # fmt: skip
-                return write_back(moved, dx, dtheta, slot), [m[2] for m in moved]
-
+        for run, run_lams, fixed in zip(runs, lams, run_fixed, strict=True):
             parts = [(f.bodies, f.params, f.static, rows) for f, rows in zip(run.families, fixed, strict=True)]
-            (dx, dtheta), new = jax.lax.scan(colour, (dx, dtheta), (parts, run.body_slot, run_lams))
+            xs = (parts, run.body_slot, run_lams)
+            if run.length == 1:  # a colour of its own: no loop
+                (dx, dtheta), new = colour((dx, dtheta), jax.tree.map(lambda x: x[0], xs), run)
+                new = [lam[None] for lam in new]
+            else:
+                (dx, dtheta), new = jax.lax.scan(functools.partial(colour, run=run), (dx, dtheta), xs)
             updated.append(new)
         return (dx, dtheta, updated), None
 
@@ -185,13 +180,8 @@ def gauss_seidel(
     result = list(multipliers)
     for f in range(len(families)):  # back to node order
         order, values = [], []
-        for (first, _), run, run_lams in zip(bounds, runs, lams, strict=True):
-            if run is None:
-                if f in present[first]:
-                    order.append(colours[first].nodes[f].array)
-                    values.append(run_lams[present[first].index(f)])
-            elif f in run.fs:
-                k = run.fs.index(f)
+        for run, run_lams in zip(runs, lams, strict=True):
+            for k in (k for k, g in enumerate(run.fs) if g == f):
                 for r, nodes in enumerate(run.nodes[k]):
                     order.append(nodes)
                     values.append(run_lams[k][r, : len(nodes)])
