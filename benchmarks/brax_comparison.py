@@ -201,11 +201,19 @@ def compile_times(engine: Engine, horizon: int = 100) -> dict:
         jax.jit(function).lower(*args).compile()
         return round(time.perf_counter() - started, 2)
 
-    return {
-        "step_s": compile_seconds(engine.step, state, controls[0]),
-        "rollout100_s": compile_seconds(rollout, state, controls),
-        "grad_rollout100_s": compile_seconds(jax.grad(lambda c: engine.height(rollout(state, c))), controls),
+    result: dict[str, Any] = {}
+    programs = {
+        "step_s": (engine.step, state, controls[0]),
+        "rollout100_s": (rollout, state, controls),
+        "grad_rollout100_s": (jax.grad(lambda c: engine.height(rollout(state, c))), controls),
     }
+    for name, (function, *args) in programs.items():
+        try:  # one program failing (Brax mjx's solver loop has no reverse mode) must not lose the others
+            result[name] = compile_seconds(function, *args)
+        except Exception as error:  # noqa: BLE001
+            result[name] = None
+            result[name.removesuffix("_s") + "_error"] = f"{error!r:.300}"
+    return result
 
 
 def dropped_accuracy(engine: Engine, seconds: float = 1.0) -> dict:
