@@ -284,13 +284,14 @@ def main() -> None:
         default=list(TASKS),
         help="which tasks to run; with a subset, the results file's other tasks are kept (merged per engine)",
     )
+    parser.add_argument("--batches", type=int, nargs="+", help="throughput's batch sizes (default: as --full or quick)")
     parser.add_argument("--note", default="", help="appended to the JSON's note (e.g. what else loaded the machine)")
     parser.add_argument("--plot", type=Path, help="only redraw the plot of an existing results JSON")
     args = parser.parse_args()
     if args.plot:
         plot(args.plot)
         return
-    batches = [1, 16, 256, 4096] if args.full else [1, 16]
+    batches = args.batches or ([1, 16, 256, 4096] if args.full else [1, 16])
     seconds = 5.0 if args.full else 1.5
     horizons = [100, 1000] if args.full else [100]
 
@@ -320,7 +321,9 @@ def main() -> None:
     # A subset of the tasks updates the file's earlier results: those tasks' fields are replaced,
     # the others kept, and each run's machine and load recorded under "runs".
     earlier = json.loads(out.read_text()) if set(args.tasks) != set(TASKS) and out.exists() else None
-    this_run = {"tasks": args.tasks, "machine": results["machine"]}
+    this_run = {"tasks": args.tasks, "engines": args.engines, "batches": batches, "machine": results["machine"]}
+    if earlier is None and set(args.tasks) != set(TASKS):
+        results["runs"] = [this_run]  # a later subset run appends to it
     if earlier is not None:
         first = {"tasks": list(TASKS), "machine": earlier["machine"], "note": earlier["note"]}
         results["runs"] = [*earlier.get("runs", [first]), this_run]
@@ -330,16 +333,18 @@ def main() -> None:
             "within a task every engine was measured in the same run, one after another: the ratios between "
             "engines are what this file reports; absolute numbers depend on what else the machine ran."
         )
-        if args.note:
-            this_run["note"] = args.note
+    if args.note:
+        this_run["note"] = args.note
     per_model: dict[str, tuple[list[Engine], dict[str, dict]]] = {}
     for model_name in args.models:
         engines, skipped = make_engines(ASSETS / f"{model_name}.xml", args.engines)
         per_engine = results["models"].setdefault(model_name, {})
         for e in engines:
             fields = per_engine.setdefault(e.name, {"dt": e.dt})
-            for field in ("throughput", "grad"):
-                fields[field] = [] if field in args.tasks else fields.get(field, [])
+            # A throughput run replaces only the batch sizes it measures; grad is measured whole.
+            fields["throughput"] = [t for t in fields.get("throughput", []) if "throughput" not in args.tasks
+                                    or t["batch"] not in batches]  # fmt: skip
+            fields["grad"] = [] if "grad" in args.tasks else fields.get("grad", [])
             rerun = ["batch" if task == "throughput" else task for task in args.tasks]
             errors = [error for error in fields.pop("errors", []) if error.split()[0] not in rerun]
             if errors:
@@ -368,7 +373,8 @@ def main() -> None:
             if kind == "compile":
                 per_engine[engine.name]["compile"] = compile_times(engine)
             elif kind == "batch":
-                per_engine[engine.name]["throughput"].append(throughput(engine, argument, seconds))
+                measured = per_engine[engine.name]["throughput"] + [throughput(engine, argument, seconds)]
+                per_engine[engine.name]["throughput"] = sorted(measured, key=lambda t: t["batch"])
             elif kind == "accuracy":
                 per_engine[engine.name]["dropped"] = dropped_accuracy(engine)
             else:
