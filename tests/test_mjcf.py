@@ -81,19 +81,13 @@ def test_ant_keeps_its_joints_together_under_random_control():
     assert float(jnp.max(diagnostics.joint_gaps(model, trajectory))) < 0.05
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="measured failing (session 12): at 4 substeps x 4 iterations the rotor rows' held step "
-    "(rows.angular_row held_step=True, joints.project) feeds energy in: 6.7 J -> 87 J by step 15, 2,352 J by "
-    "step 20, the torso thrown to 5.7 m, joint gaps 0.62 m. With held_step=False for the hinge rotor: energy "
-    "falls 6.7 -> -1.2 J, largest gap 3.8 mm, but a hinge pendulum's rotor then counts for too little "
-    "(test_impulse.py: period 2.04 s for 2.46 s). 16 iterations x 4 substeps: energy 6.7 -> -0.2 J, gap 2.9 mm",
-)
 def test_dropped_ant_with_armature_gains_no_energy_at_four_substeps():
     # Brax's ant (armature 1 on every hinge: 40x the hips' own joint-space inertia, 120x the ankles')
     # with its ankles' ranges widened to hold the build pose (in ant.xml the ankles start 30 degrees
     # outside their range, and correcting that in one substep is a kick of its own). Zero control,
-    # dropped from the build pose: contacts and joint damping only take energy out.
+    # dropped from the build pose: contacts and joint damping only take energy out. Before the
+    # rotor rows' held step counted the joint point's open gap (rows.angular_row), this ant gained
+    # 6.7 J -> 2,352 J by step 20 and tore apart (gaps 0.62 m); now 6.7 -> -1.7 J, gap 3.2 mm.
     xml = (ASSETS / "ant.xml").read_text().replace('range="30 70"', 'range="-70 70"')
     xml = xml.replace('range="-70 -30"', 'range="-70 70"')
     model = dbd.load_mjcf(xml, substeps=4, iterations=4)

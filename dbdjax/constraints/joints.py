@@ -332,8 +332,8 @@ def project(
     untouched = list(lam)
     # The angular rows move the pair with the joint point held (rows.PointHold): where the point
     # block is a full 3-D one, at the points of the start of this sweep.
-    _, hold_arm_a, hold_arm_b = joint_points(joint, flag, pair, *pair.current_quats())
-    hold = row.point_hold(pair, hold_arm_a, hold_arm_b, ~(flag.slider | flag.planar))
+    hold_gap, hold_arm_a, hold_arm_b = joint_points(joint, flag, pair, *pair.current_quats())
+    hold = row.point_hold(pair, hold_arm_a, hold_arm_b, hold_gap, ~(flag.slider | flag.planar))
     hard = lambda active, inequality=False: row.rigid(xi, alpha, active, inequality)  # noqa: E731
 
     # Armature: MuJoCo's 1/2 armature qdot^2 on the joint coordinate q, in the step's variational
@@ -345,7 +345,8 @@ def project(
     # `held_step`): how far a step goes sets how the correction is shared between the rotor and
     # the bodies, and with w about the body's centre a light pendulum's rotor took a step 80x too
     # short (armature 0.5 on a 1 kg bob 1 m out: period 2.04 s at 8 iterations, 2.21 s at 64,
-    # against 2.46 s).
+    # against 2.46 s). The held step also counts the point's open gap (`rows.angular_row`): without
+    # it Brax's ant (armature 40-120x its joints' inertia) gained energy at 4 substeps.
     if {"rotor_hinge", "rotor_slider", "rotor_ball", "rotor_euler"} & rows:
         still = pair._replace(**{f: jnp.zeros_like(pair.dx_a) for f in ("dx_a", "dx_b", "dtheta_a", "dtheta_b")})
 

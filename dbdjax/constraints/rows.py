@@ -268,20 +268,26 @@ class PointHold(NamedTuple):
     arm_a, arm_b: (3,) the joint point from each centre (m). solve: (3, 3) K^-1, the inverse of
     the point block's effective inverse mass (zero where nothing is held: a slider, a planar
     joint, two static bodies). impulse: (3,) kg m, the point impulse the held rows have applied
-    so far this substep (it joins the point block's multiplier).
+    so far this substep (it joins the point block's multiplier). gap: (3,) m, p_a - p_b where the
+    hold was taken; held rows leave it unchanged to first order, so it stands for the gap while
+    they act (the held step's slope, `angular_row`).
     """
 
     arm_a: jnp.ndarray
     arm_b: jnp.ndarray
     solve: jnp.ndarray
     impulse: jnp.ndarray
+    gap: jnp.ndarray
 
 
-def point_hold(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, active: jnp.ndarray) -> PointHold:
+def point_hold(
+    pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, gap: jnp.ndarray, active: jnp.ndarray
+) -> PointHold:
     """Hold the point at arm_a on a and arm_b on b together while angular rows act (`active`:
-    () bool, False for joints whose point block is not a full 3-D one)."""
+    () bool, False for joints whose point block is not a full 3-D one). gap: (3,) m, p_a - p_b
+    where the hold starts (held rows keep it, to first order)."""
     solve, _ = definite_inverse(point_inverse_mass(pair, arm_a, arm_b), active)
-    return PointHold(arm_a, arm_b, solve, jnp.zeros_like(arm_a))
+    return PointHold(arm_a, arm_b, solve, jnp.zeros_like(arm_a), gap)
 
 
 def _point_impulses(hold: PointHold, turn_a: jnp.ndarray, turn_b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -305,14 +311,21 @@ def angular_row(
 
     hold: the joint's point, held while the row acts (module docstring), or None. held_step: the
     step length from the held response w - s^T K^-1 s instead of w (a rotor row: see
-    `joints.project`). Returns the moved pair, the new multiplier and the hold with the point
-    impulse it added.
+    `joints.project`), and the step is then the exact minimiser along the held direction: the
+    row together with its point impulse mu = -K^-1 s per unit step is one direction in the
+    multipliers of (row, point), and the slope there is c + mu . g, g the point's own gap. Without
+    mu . g a row that acts while the point is still open (the first sweep of a substep, the point
+    projected last) steps as if it were closed, and the point block then undoes part of the turn:
+    a rotor of armature 40-120x its joint's inertia (Brax's ant) fed energy in that way, 6.7 J ->
+    2,352 J in 20 steps at 4 substeps x 4 iterations. Returns the moved pair, the new multiplier
+    and the hold with the point impulse it added.
     """
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     if hold is not None:
         point_impulse, gap = _point_impulses(hold, turn_a, turn_b)
         if held_step:  # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
             inverse_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
+            error = error + math.dot(point_impulse, hold.gap)  # the slope along the held direction
     drift = 0.0
     if rule.spring or rule.speed:
         drift = math.dot(direction, h * (pair.ang_vel_a - pair.ang_vel_b) + (pair.dtheta_a - pair.dtheta_b))
@@ -348,13 +361,15 @@ def angular_spring(
     (113): d kappa = -xi (1 + (k h^2 + nu h) W)^-1 (kappa + k h^2 c + nu h drift) (112); then
     |kappa| <= bound = tau_max h^2 (114). hold: the joint's point, held as in `angular_row`;
     held_step: W - G^T K^-1 G in (112), the response with the point held (G kappa: the gap a
-    step kappa opens at the joint point, G = [arm_a]x I_a^-1 + [arm_b]x I_b^-1).
+    step kappa opens at the joint point, G = [arm_a]x I_a^-1 + [arm_b]x I_b^-1), and the error
+    c - G^T K^-1 g with the point's open gap g, as in `angular_row`.
     Returns the moved pair, the new kappa and the hold.
     """
     inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b  # (113)
     if hold is not None and held_step:
         opens = math.skew(hold.arm_a) @ pair.inv_inertia_a + math.skew(hold.arm_b) @ pair.inv_inertia_b
         inverse_inertia = inverse_inertia - opens.T @ hold.solve @ opens
+        error = error - math.matvec(opens.T, math.matvec(hold.solve, hold.gap))
     drift = h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a)
     residual = multiplier + stiffness_h2 * error + damping_h * drift
     system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
