@@ -35,6 +35,13 @@ import dbdjax as dbd
 ASSETS = Path(__file__).resolve().parents[1] / "tests" / "assets"
 RESULTS = Path(__file__).resolve().parent / "results"
 DBD_ITERATIONS = 4  # Gauss-Seidel iterations per substep for dbdjax (Brax's humanoid.xml asks MuJoCo for 8)
+# Every engine's programs are compiled with the same XLA options: dbdjax's (`dbd.compiler_options`,
+# which make Brax's programs faster too) unless --xla-defaults.
+COMPILER_OPTIONS = dbd.compiler_options()
+
+
+def jit(function: Callable) -> Callable:
+    return jax.jit(function, compiler_options=COMPILER_OPTIONS or None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -168,7 +175,7 @@ def throughput(engine: Engine, batch: int, seconds: float, chunk: int = 10) -> d
     state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), engine.init())
     controls = random_controls(engine, (chunk, batch))
     batched = jax.vmap(engine.step)
-    run = jax.jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0])
+    run = jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0])
     # Two untimed calls: the first compiles, and where an engine's state comes back with other
     # types than it went in (weak types), the second compiles again; timing starts after both.
     started = time.perf_counter()
@@ -198,7 +205,7 @@ def compile_times(engine: Engine, horizon: int = 100) -> dict:
 
     def compile_seconds(function, *args):
         started = time.perf_counter()
-        jax.jit(function).lower(*args).compile()
+        jit(function).lower(*args).compile()
         return round(time.perf_counter() - started, 2)
 
     result: dict[str, Any] = {}
@@ -227,7 +234,7 @@ def dropped_accuracy(engine: Engine, seconds: float = 1.0) -> dict:
         s = engine.step(s, jnp.zeros(engine.num_controls))
         return s, (engine.joint_gap(s), engine.energy(s))
 
-    final, (gaps, energies) = jax.jit(lambda s: jax.lax.scan(one, s, None, length=steps))(state)
+    final, (gaps, energies) = jit(lambda s: jax.lax.scan(one, s, None, length=steps))(state)
     start = float(engine.energy(state))
     return {
         "steps": steps,
@@ -247,7 +254,7 @@ def gradient_cost(engine: Engine, horizon: int, remat: bool) -> dict:
     state = engine.init()
     controls = random_controls(engine, (horizon,))
     rollout = rollout_function(engine, step)
-    grad = jax.jit(jax.grad(lambda c: engine.height(rollout(state, c))))
+    grad = jit(jax.grad(lambda c: engine.height(rollout(state, c))))
     compiled = grad.lower(controls).compile()
     memory = compiled.memory_analysis()
     temp = getattr(memory, "temp_size_in_bytes", None) if memory is not None else None
@@ -287,7 +294,15 @@ def main() -> None:
     parser.add_argument("--batches", type=int, nargs="+", help="throughput's batch sizes (default: as --full or quick)")
     parser.add_argument("--note", default="", help="appended to the JSON's note (e.g. what else loaded the machine)")
     parser.add_argument("--plot", type=Path, help="only redraw the plot of an existing results JSON")
+    parser.add_argument(
+        "--xla-defaults",
+        action="store_true",
+        help="compile every engine with XLA's default options instead of dbdjax.compiler_options()",
+    )
     args = parser.parse_args()
+    global COMPILER_OPTIONS
+    if args.xla_defaults:
+        COMPILER_OPTIONS = {}
     if args.plot:
         plot(args.plot)
         return
@@ -301,6 +316,7 @@ def main() -> None:
             "dbdjax": f"1 substep, {DBD_ITERATIONS} iterations, float32",
             "brax": "the XML's options (brax.io.mjcf.load defaults), float32",
             "controls": "uniform random in ctrlrange (throughput); zero (dropped accuracy)",
+            "compiler_options": COMPILER_OPTIONS,
         },
         "machine": {
             **machine.describe(),
@@ -321,7 +337,8 @@ def main() -> None:
     # A subset of the tasks updates the file's earlier results: those tasks' fields are replaced,
     # the others kept, and each run's machine and load recorded under "runs".
     earlier = json.loads(out.read_text()) if set(args.tasks) != set(TASKS) and out.exists() else None
-    this_run = {"tasks": args.tasks, "engines": args.engines, "batches": batches, "machine": results["machine"]}
+    this_run = {"tasks": args.tasks, "engines": args.engines, "batches": batches, "machine": results["machine"],
+                "compiler_options": COMPILER_OPTIONS}  # fmt: skip
     if earlier is None and set(args.tasks) != set(TASKS):
         results["runs"] = [this_run]  # a later subset run appends to it
     if earlier is not None:

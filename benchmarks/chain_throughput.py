@@ -40,7 +40,7 @@ def measure_batch(model, batch: int, seconds: float) -> dict:
     start = dbd.init(model)
     state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), start)
     chunk = 10  # steps per call, in a scan, so Python overhead does not count
-    run = jax.jit(
+    run = dbd.jit(
         lambda s: jax.lax.scan(
             lambda s, _: (jax.vmap(dbd.step, in_axes=(None, 0))(model, s), None), s, None, length=chunk
         )[0]
@@ -68,7 +68,7 @@ def grad_compile_time(model, horizon: int = 32) -> float:
                                                 model.bodies.initial_ang_vel), steps=horizon)  # fmt: skip
         return jnp.sum(final.pos[:, 2])
 
-    return timed(jax.jit(jax.grad(loss)), model.bodies.initial_vel)
+    return timed(dbd.jit(jax.grad(loss)), model.bodies.initial_vel)
 
 
 def main() -> None:
@@ -78,7 +78,7 @@ def main() -> None:
     args = parser.parse_args()
 
     model = chain_model()
-    step_compile = timed(jax.jit(dbd.step).lower(model, dbd.init(model)).compile)
+    step_compile = timed(dbd.jit(dbd.step).lower(model, dbd.init(model)).compile)
     results = {
         "scene": f"{LINKS}-body ball-joint chain, dt=1/60, 1 substep, 8 iterations, float32",
         "engine": f"dbdjax {dbd.__version__}",

@@ -22,7 +22,7 @@ import dbdjax as dbd
 
 def run(model, steps):
     start = dbd.init(model)
-    rollout = jax.jit(lambda s: dbd.rollout(model, s, steps=steps))
+    rollout = dbd.jit(lambda s: dbd.rollout(model, s, steps=steps))
     clock = time.perf_counter()
     compiled = rollout.lower(start).compile()
     compile_s = time.perf_counter() - clock

@@ -69,7 +69,7 @@ def single_kicks(task: RagdollStand, speeds, directions, steps: int = 150, at: i
     speed, direction = (x.ravel() for x in np.meshgrid(speeds, directions, indexing="ij"))
     n = len(speed)
 
-    @jax.jit
+    @dbd.jit
     def run(key):
         state, _, _ = jax.vmap(task.reset)(jnp.broadcast_to(key, (n, 2)))
         yaw = jax.vmap(task.heading)(state.physics)
@@ -106,7 +106,7 @@ def leans(task: RagdollStand, ankle_targets, steps: int = 150) -> dict:
         actions[:, entry] = np.asarray(ankle_targets) / task.control_scale[entry]
     mass = jnp.asarray(task.model.bodies.mass)
 
-    @jax.jit
+    @dbd.jit
     def run(key):
         state, _, _ = jax.vmap(task.reset)(jnp.broadcast_to(key, (n, 2)))
         yaw = jax.vmap(task.heading)(state.physics)
@@ -132,7 +132,7 @@ def random_pushes(speed_ranges, episodes: int = 32, steps: int = 300) -> list[di
     for low, high in speed_ranges:
         task = RagdollStand(max_episode_steps=steps, push_speed=(low, high), push_interval=2.0 if high > 0 else None)
 
-        @jax.jit
+        @dbd.jit
         def run(keys, task=task):
             state, _, _ = jax.vmap(task.reset)(keys)
 

@@ -68,7 +68,7 @@ def measure(substeps: int, iterations: int, batch: int, steps: int = 120) -> dic
         control = jnp.broadcast_to(control, (batch, model.num_controls))
         function = jax.vmap(function)
     clock, clock_cpu = time.perf_counter(), time.process_time()
-    step = jax.jit(function).lower(state, control).compile()
+    step = dbd.jit(function).lower(state, control).compile()
     compile_s, compile_cpu_s = time.perf_counter() - clock, time.process_time() - clock_cpu
     wall, ms, final = stepping_ms(step, state, control, steps)
     pelvis = np.asarray(final.pos[..., doll.bodies["pelvis"], 2])
@@ -93,15 +93,15 @@ def breakdown(substeps: int, iterations: int) -> dict:
         slots = collision.detect(model, state, predicted, h)
         _, _, normal = solver.solve(model, predicted, control, slots, h)
         key = "" if floor else "no_floor_"
-        parts[key + "solve_ms"] = best_ms(jax.jit(lambda p, s, c, m=model, h=h: solver.solve(m, p, c, s, h)),
+        parts[key + "solve_ms"] = best_ms(dbd.jit(lambda p, s, c, m=model, h=h: solver.solve(m, p, c, s, h)),
                                           predicted, slots, control)  # fmt: skip
         if floor:
-            parts["predict_ms"] = best_ms(jax.jit(lambda s, c, m=model, h=h: integrator.predict(m, s, h, c)), state,
+            parts["predict_ms"] = best_ms(dbd.jit(lambda s, c, m=model, h=h: integrator.predict(m, s, h, c)), state,
                                           control)  # fmt: skip
-            parts["detect_ms"] = best_ms(jax.jit(lambda s, p, m=model, h=h: collision.detect(m, s, p, h)),
+            parts["detect_ms"] = best_ms(dbd.jit(lambda s, p, m=model, h=h: collision.detect(m, s, p, h)),
                                          state, predicted)  # fmt: skip
             parts["restitution_ms"] = best_ms(
-                jax.jit(lambda s, c, n, m=model, h=h: solver.restitution(m, s, c, n, h)), state, slots, normal
+                dbd.jit(lambda s, c, n, m=model, h=h: solver.restitution(m, s, c, n, h)), state, slots, normal
             )
             parts["colours"] = model.structure.num_colours
             parts["contact_pairs"] = sum(len(g.shapes.array) for g in model.structure.contact_groups)

@@ -336,7 +336,7 @@ def penetration_function(model: dbd.Model) -> Callable | None:
             deepest = jnp.minimum(deepest, jnp.min(jnp.where(contacts.active, contacts.distance, 0.0)))
         return -deepest
 
-    return jax.jit(jax.vmap(frame))
+    return dbd.jit(jax.vmap(frame))
 
 
 def deepest_over(penetration: Callable, trajectory: dbd.State, chunk: int = 64) -> np.ndarray:
@@ -390,7 +390,7 @@ def compiled_rollout(model: dbd.Model, start: dbd.State, cache: dict) -> tuple[C
     if key not in cache:
         clock = time.perf_counter()
         dt = jnp.asarray(CANONICAL_DT, start.pos.dtype)
-        cache[key] = jax.jit(_rollout_chunk).lower(_canonical(model), start, dt).compile()
+        cache[key] = dbd.jit(_rollout_chunk).lower(_canonical(model), start, dt).compile()
         compile_s = time.perf_counter() - clock
     chunk = cache[key]
 
@@ -597,7 +597,7 @@ def _brax_rollout(caches: dict, system, key: tuple):
     if key not in caches["rollout"]:
         clock = time.perf_counter()
         dt = jnp.asarray(0.01, jnp.float32)
-        caches["rollout"][key] = (jax.jit(chunk).lower(system, jax.jit(begin)(system), dt).compile(), jax.jit(begin))
+        caches["rollout"][key] = (dbd.jit(chunk).lower(system, dbd.jit(begin)(system), dt).compile(), dbd.jit(begin))
         compile_s = time.perf_counter() - clock
     compiled, start = caches["rollout"][key]
 

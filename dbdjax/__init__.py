@@ -10,6 +10,7 @@ state = dbd.step(model, dbd.init(model))
 
 from dbdjax import _layout, diagnostics, math, render, sharding
 from dbdjax.builder import ModelBuilder
+from dbdjax.compiling import compiler_options, jit
 from dbdjax.mjcf import load_mjcf
 from dbdjax.model import WORLD, Model, State
 from dbdjax.pipeline import init, is_finite, rollout, step
@@ -17,11 +18,13 @@ from dbdjax.pipeline import init, is_finite, rollout, step
 __all__ = [
     "WORLD",
     "Model",
+    "compiler_options",
     "diagnostics",
     "ModelBuilder",
     "State",
     "init",
     "is_finite",
+    "jit",
     "load_mjcf",
     "math",
     "render",

@@ -7,7 +7,7 @@ the results come back sharded the same way. The model (its parameters) is replic
 
     mesh = dbd.sharding.batch_mesh()                       # all local devices, axis "batch"
     states = dbd.sharding.shard_batch(states, mesh)        # leading axis B, B % devices == 0
-    final, trajectory = jax.jit(jax.vmap(dbd.rollout, in_axes=(None, 0, 0)))(model, states, controls)
+    final, trajectory = dbd.jit(jax.vmap(dbd.rollout, in_axes=(None, 0, 0)))(model, states, controls)
 
 On CPU, XLA_FLAGS=--xla_force_host_platform_device_count=4 (set before jax is imported) gives
 four host devices to try it; across machines, `jax.distributed.initialize()` first.

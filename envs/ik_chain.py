@@ -284,7 +284,7 @@ def expert_rollout(env: IKChainReach, keys: jnp.ndarray, iterations: int = 32, m
 
 @functools.cache
 def _compiled_rollout(env: IKChainReach, iterations: int, method: str, steps: int):
-    return jax.jit(functools.partial(expert_rollout, env, iterations=iterations, method=method, steps=steps))
+    return dbd.jit(functools.partial(expert_rollout, env, iterations=iterations, method=method, steps=steps))
 
 
 def evaluate_expert(
@@ -314,8 +314,8 @@ def evaluate_expert(
     distance, success, reward = jax.block_until_ready(compiled(keys))
     rollout_s = time.perf_counter() - start
 
-    states = jax.jit(jax.vmap(lambda key: env.reset(key)[0]))(keys)
-    solve = jax.jit(jax.vmap(functools.partial(expert_action, env, iterations=iterations, method=method)))
+    states = dbd.jit(jax.vmap(lambda key: env.reset(key)[0]))(keys)
+    solve = dbd.jit(jax.vmap(functools.partial(expert_action, env, iterations=iterations, method=method)))
     jax.block_until_ready(solve(states))
     start = time.perf_counter()
     repeats = 5

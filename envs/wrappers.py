@@ -43,6 +43,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
+from dbdjax.compiling import merged_options
 from dbdjax.envs.core import DbdFuncEnv, EnvState, seed_key
 
 RENDER_MODES = ["rgb_array"]
@@ -108,7 +109,8 @@ def _jitted(function: Callable, static: int, options: tuple) -> Callable:
 
 
 def _options(jit_options: dict | None) -> tuple:
-    return tuple(sorted((jit_options or {}).items()))
+    """dbdjax's compiler options (`dbdjax.compiler_options`) with the caller's over them."""
+    return tuple(sorted((merged_options(jit_options) or {}).items()))
 
 
 def render_frame(func_env: DbdFuncEnv, state: EnvState, **kwargs) -> np.ndarray:
@@ -140,7 +142,8 @@ class DbdEnv(gym.Env):
     """One environment of a `DbdFuncEnv` task (see the module docstring for the conventions).
 
     func_env: the task. render_mode: None or "rgb_array". jit_options: XLA compiler options for
-    the jitted reset/step (e.g. {"xla_backend_optimization_level": 0} compiles faster, runs slower).
+    the jitted reset/step, applied over `dbdjax.compiler_options()` (a value of None drops one of
+    those; e.g. {"xla_backend_optimization_level": 0} compiles faster, runs slower).
     `state` is the current `EnvState` (None before the first reset).
     """
 

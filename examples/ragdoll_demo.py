@@ -54,7 +54,7 @@ def main() -> None:
     print(f"ragdoll: {model.num_bodies} bodies, {len(doll.joints)} joints, {model.num_controls} drive targets, "
           f"dt {model.dt:.4f} s, {options.substeps} substeps x {options.iterations} iterations")  # fmt: skip
     started = time.perf_counter()
-    run = jax.jit(lambda s, c: dbd.rollout(model, s, c))
+    run = dbd.jit(lambda s, c: dbd.rollout(model, s, c))
     final, trajectory = run(dbd.init(model), controls)
     jax.block_until_ready(final)
     seconds = time.perf_counter() - started

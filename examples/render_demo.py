@@ -60,7 +60,7 @@ def main() -> None:
 
     model = build()
     steps = int(SECONDS / model.dt)
-    _, trajectory = jax.jit(lambda s: dbd.rollout(model, s, steps=steps))(dbd.init(model))
+    _, trajectory = dbd.jit(lambda s: dbd.rollout(model, s, steps=steps))(dbd.init(model))
     every = max(1, round(1.0 / (model.dt * args.frames_per_second)))
     states = jax.tree.map(lambda x: x[::every], trajectory)
     frames_count = states.pos.shape[0]

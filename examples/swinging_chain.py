@@ -9,7 +9,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import matplotlib
 
@@ -35,7 +34,7 @@ def build() -> dbd.Model:
 def main() -> None:
     model = build()
     steps = int(SECONDS / model.dt)
-    simulate = jax.jit(lambda s: dbd.rollout(model, s, steps=steps))
+    simulate = dbd.jit(lambda s: dbd.rollout(model, s, steps=steps))
     started = time.perf_counter()
     final, trajectory = simulate(dbd.init(model))
     final.pos.block_until_ready()

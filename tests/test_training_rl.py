@@ -145,22 +145,17 @@ def test_checkpoint_round_trips_and_the_loaded_policy_acts_the_same(stand, tmp_p
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="measured failing, though improving (32,768 steps, seed 0, 300-step episodes, default pushes, "
-    "exploration on the ankles only at std 0.01, rho 0.9, KL-adaptive from 3e-5): return 138.96 -> 171.45 (gain "
-    "32.49 +- 11.85, 2.7 standard errors), survival 1/32 -> 7/32, 260 s on one core; 32 envs x 40 iterations: "
-    "30.70 +- 11.67; 32 x 64: 21.33 +- 11.22; 64 x 48: 20.09 +- 11.64. The best constant ankle lean gains 43.43 +- "
-    "12.19 (3.6). In 150-step episodes no constant lean passes (6.98 +- 4.42 at best). README: Reinforcement "
-    "learning",
-)
 def test_ppo_improves_the_return_on_ragdoll_stand(stand_full):
     """Exploration on the ankles only (`PPOConfig.explored_actions`): noise of std 0.01 on every
     action entry shortens the home pose's training episodes by a third, and PPO trained on that
-    policy made the deterministic one worse (README: Reinforcement learning)."""
+    policy made the deterministic one worse (README: Reinforcement learning).
+
+    Judged on 128 paired evaluation episodes: the pushes make one episode's return vary by about
+    70, so 32 episodes (the earlier setting: gains of 21-32 measured at 1.7-2.7 standard errors)
+    could not tell a gain of the size of the best constant ankle lean (+43) at three."""
     config = ppo.PPOConfig(num_envs=64, unroll_length=16, num_minibatches=2, update_epochs=4, noise_correlation=0.9,
                            explored_actions=ankle_actions(stand_full))  # fmt: skip
-    result = ppo.train(stand_full, config, total_steps=PPO_STEPS, eval_episodes=32, evaluate_initial=True,
+    result = ppo.train(stand_full, config, total_steps=PPO_STEPS, eval_episodes=128, evaluate_initial=True,
                        progress=False)  # fmt: skip
     gain, error = paired_gain(result.initial_evaluation, result.evaluation)
     returns = [row["episode_return"] for row in result.history]

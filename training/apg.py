@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from dbdjax.compiling import jit
 from dbdjax.envs.core import DbdFuncEnv
 
 from . import rl
@@ -122,7 +123,7 @@ def make_update(task: DbdFuncEnv, config: APGConfig, optimiser: optax.GradientTr
         carry, (rewards, observations, ended) = jax.lax.scan(body, start, keys)
         return -jnp.mean(rewards), (carry, observations, ended)
 
-    @jax.jit
+    @jit
     def update(state: TrainState):
         key, unroll_key = jax.random.split(state.key)
         keys = jax.random.split(unroll_key, config.horizon)
@@ -190,7 +191,7 @@ def train(
     clock = rl.Clock()
     key, init_key, env_key = jax.random.split(jax.random.PRNGKey(seed), 3)
     policy = rl.init_mlp(init_key, (task.observation_size, *config.hidden, task.action_size), config.init_scale)
-    env_state, obs, _ = jax.jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
+    env_state, obs, _ = jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
     state = TrainState(
         policy=policy,
         opt_state=optimiser.init(policy),

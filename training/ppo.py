@@ -51,6 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from dbdjax.compiling import jit
 from dbdjax.envs.core import DbdFuncEnv
 
 from . import rl
@@ -322,7 +323,7 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         (params, opt_state, stats), info = jax.lax.scan(update_minibatch, (params, opt_state, stats), shuffled)
         return (params, opt_state, stats, data), info
 
-    @jax.jit
+    @jit
     def iteration(state: TrainState):
         state, (batch, ended) = rollout(state)
         # The statistics are updated before the updates (as Brax's PPO does): the networks are
@@ -393,7 +394,7 @@ def train(
     key = jax.random.PRNGKey(seed)
     key, init_key, env_key, noise_key = jax.random.split(key, 4)
     params = init_params(task, config, init_key)
-    env_state, obs, _ = jax.jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
+    env_state, obs, _ = jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
     state = TrainState(
         params=params,
         opt_state=optimiser.init(params),

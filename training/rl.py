@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dbdjax.compiling import jit
 from dbdjax.envs.core import DbdFuncEnv
 
 from . import checkpoint
@@ -134,7 +135,7 @@ def _episodes(task: DbdFuncEnv, num_episodes: int, steps: int) -> Callable:
     """The jitted evaluation run (params, keys) -> (returns, lengths, alive), one compilation per
     task, batch and length (tasks hash by their settings) whatever the parameters' values."""
 
-    @jax.jit
+    @jit
     def run(params, keys):
         state, obs, _ = jax.vmap(task.reset)(keys)
 

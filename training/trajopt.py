@@ -454,7 +454,7 @@ def make_update(task: Task, transform: optax.GradientTransformation, remat_chunk
     low = None if task.control_low is None else jnp.asarray(task.control_low)
     high = None if task.control_high is None else jnp.asarray(task.control_high)
 
-    @jax.jit
+    @dbd.jit
     def update(controls, opt_state):
         (value, trajectory), gradient = jax.value_and_grad(loss_and_trajectory, has_aux=True)(controls)
         updates, opt_state = transform.update(gradient, opt_state, controls)

@@ -347,6 +347,18 @@ def project(
     # short (armature 0.5 on a 1 kg bob 1 m out: period 2.04 s at 8 iterations, 2.21 s at 64,
     # against 2.46 s). The held step also counts the point's open gap (`rows.angular_row`): without
     # it Brax's ant (armature 40-120x its joints' inertia) gained energy at 4 substeps.
+    # A universal or gimbal joint's hinge angles t_k are measured once per projection and carried
+    # to first order through its rows: a row turns b against a by dtheta_b - dtheta_a, which moves
+    # t_k by g_k . (that turn), and g_k stays the one measured here (the rows' Jacobians, fixed
+    # for one projection of the joint). Measuring them again before each of the up to nine rows
+    # that read them was a third of the humanoid's compiled joint sweep.
+    if {"rotor_euler", "euler_drive", "euler_limited"} & rows:
+        measured_angles, euler_directions = _euler_angles(joint, flag, pair, rows)
+        measured_turn = pair.dtheta_b - pair.dtheta_a
+
+        def euler_angles_now(pair):  # (3,) rad: t_k at the pair as the rows have moved it
+            return measured_angles + math.matvec(euler_directions, (pair.dtheta_b - pair.dtheta_a) - measured_turn)
+
     if {"rotor_hinge", "rotor_slider", "rotor_ball", "rotor_euler"} & rows:
         still = pair._replace(**{f: jnp.zeros_like(pair.dx_a) for f in ("dx_a", "dx_b", "dtheta_a", "dtheta_b")})
 
@@ -381,7 +393,7 @@ def project(
     if "rotor_euler" in rows:
         reference = _euler_angles(joint, flag, still, rows)[0] if target.reference is None else target.reference[2]
         for k in range(3):
-            angles, directions = _euler_angles(joint, flag, pair, rows)
+            angles, directions = euler_angles_now(pair), euler_directions
             error, rule = rotor(k, wrapped(angles[k], reference[k]), flag.rotor_euler[k])
             pair, lam[ROTOR + k], hold = row.angular_row(
                 pair, -directions[k], error, lam[ROTOR + k], rule, h, hold, held_step=True
@@ -414,7 +426,7 @@ def project(
         # One spring row per hinge angle t_k toward its target, along g_k (DBD 9 per hinge, as
         # MuJoCo's per-dof stiffness and damping). The universal's third row has g = 0: no step.
         for k in range(3):
-            angles, directions = _euler_angles(joint, flag, pair, rows)
+            angles, directions = euler_angles_now(pair), euler_directions
             offset = angles[k] - target.drive[k]
             error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
             pair, lam[DRIVE + k], hold = row.angular_row(
@@ -504,7 +516,7 @@ def project(
     # +-g_k: its impulse is the generalised force on hinge k alone.
     if "euler_limited" in rows:
         for k in range(3):
-            angles, directions = _euler_angles(joint, flag, pair, rows)
+            angles, directions = euler_angles_now(pair), euler_directions
             sign, error, upper_row = _nearer_bound(angles[k], joint.axis_lower[k], joint.axis_upper[k])
             multiplier = jnp.where(upper_row, lam[EULER_UPPER + k], lam[EULER_LOWER + k])
             pair, multiplier, hold = row.angular_row(
