@@ -7,6 +7,8 @@ wall clock; cpu_s_per_step, the process's CPU time per batched step, moves less 
     python benchmarks/env_throughput.py [--envs dbdjax/IKChainReach-v0 ...] [--batches 1 64 1024] [--steps 20]
 
 One env step is frame_skip physics steps (2 for every dbdjax env), so physics steps/s = 2 x env steps/s.
+The envs compile with `dbdjax.compiler_options()`; --xla-defaults-too also measures each env and
+batch compiled with XLA's defaults, just before, so that the two can be compared under one load.
 """
 
 from __future__ import annotations
@@ -22,11 +24,14 @@ import gymnasium as gym
 import jax
 import machine  # benchmarks/machine.py, beside this script
 
+import dbdjax as dbd
 import dbdjax.envs  # noqa: F401 (registers the envs)
 
 
-def measure(env_id: str, batch: int, steps: int) -> dict:
-    envs = gym.make_vec(env_id, num_envs=batch, vectorization_mode="vector_entry_point")
+def measure(env_id: str, batch: int, steps: int, xla_defaults: bool = False) -> dict:
+    # A None value drops one of dbdjax's compiler options (envs/wrappers.py).
+    jit_options = {name: None for name in dbd.compiler_options()} if xla_defaults else None
+    envs = gym.make_vec(env_id, num_envs=batch, vectorization_mode="vector_entry_point", jit_options=jit_options)
     envs.reset(seed=0)
     key = jax.random.PRNGKey(0)
     shape = envs.action_space.shape
@@ -44,6 +49,7 @@ def measure(env_id: str, batch: int, steps: int) -> dict:
     return {
         "env": env_id,
         "batch": batch,
+        "compiler_options": {} if xla_defaults else dbd.compiler_options(),
         "steps": steps,
         "first_call_s": round(first_call, 2),
         "env_steps_per_s": round(batch * steps / seconds, 1),
@@ -61,6 +67,7 @@ def main() -> None:
     parser.add_argument("--batches", nargs="+", type=int, default=[1, 64, 1024])
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--xla-defaults-too", action="store_true", help="also measure with XLA's default options")
     args = parser.parse_args()
     device = jax.devices()[0]
     results = {
@@ -74,10 +81,11 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     for env_id in args.envs:
         for batch in args.batches:
-            run = measure(env_id, batch, args.steps)
-            print(json.dumps(run), flush=True)
-            results["runs"].append(run)
-            out.write_text(json.dumps(results, indent=1) + "\n")  # after every run: a long run keeps its rows
+            for xla_defaults in (True, False) if args.xla_defaults_too else (False,):
+                run = measure(env_id, batch, args.steps, xla_defaults)
+                print(json.dumps(run), flush=True)
+                results["runs"].append(run)
+                out.write_text(json.dumps(results, indent=1) + "\n")  # after every run: a long run keeps its rows
     print(f"wrote {out}")
 
 

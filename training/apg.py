@@ -3,8 +3,8 @@ return through the simulator, as Brax's `apg` does.
 
     from dbdjax.envs import RagdollStand
     from dbdjax.training import apg
-    task = RagdollStand(max_episode_steps=300, push_interval=2.0)
-    result = apg.train(task, apg.APGConfig(), updates=200)     # or time_budget_s=600
+    task = RagdollStand(max_episode_steps=150)
+    result = apg.train(task, apg.APGConfig(), updates=40)      # or time_budget_s=600
 
     python -m dbdjax.training.apg --env dbdjax/RagdollStand-v0 --minutes 10 --out runs/apg
 
@@ -49,8 +49,10 @@ from . import rl
 
 @dataclasses.dataclass(frozen=True)
 class APGConfig:
-    """APG hyper-parameters (benchmarks/results/apg_ragdoll_stand.json used num_envs 8, horizon 8
-    and a rate of 3e-5; README: Reinforcement learning).
+    """APG hyper-parameters. The defaults are the setting that raised the return on
+    RagdollStand-v0 (benchmarks/results/apg_ragdoll_stand_horizon64.json: +12.4 +- 3.2 in 40
+    updates); with 8-step unrolls the gradient sees the shaping terms but not the falls, and
+    training lowered the return (README: Reinforcement learning).
 
     num_envs: episodes run side by side. horizon: env steps per update (the gradient's length).
     learning_rate: Adam's (cosine-decayed to 10% when the number of updates is known).
@@ -59,9 +61,9 @@ class APGConfig:
     last layer at initialisation (small: the policy starts at the build pose).
     """
 
-    num_envs: int = 16
-    horizon: int = 16
-    learning_rate: float = 3e-4
+    num_envs: int = 8
+    horizon: int = 64
+    learning_rate: float = 3e-5
     max_grad_norm: float = 1.0
     hidden: tuple[int, ...] = (64, 64)
     remat: bool = True
