@@ -1,9 +1,10 @@
 """How dbdjax's programs are best compiled: XLA options per compiled program, and `jit` with them.
 
 A DBD step is a long chain of small operations (each constraint row moves the pair of bodies the
-next row reads), inside loops over iterations and colours. XLA:CPU's default fusion emitters
-build that chain into a few large fused kernels that evaluate shared parts again for every
-output they feed; with `xla_cpu_use_fusion_emitters` off it keeps them apart. Measured on Brax's
+next row reads), inside loops over iterations and colours. Session 11's profile found XLA:CPU's
+default fusion emitters building that chain into a few large fused kernels that evaluate shared
+parts again for every output they feed; with `xla_cpu_use_fusion_emitters` off the step runs
+faster (why exactly was not profiled after the change). Measured on Brax's
 humanoid.xml (1 substep, 4 iterations, float32, one core; `benchmarks/brax_comparison.py` runs
 every engine with these options, README "Compiling"): a step 1.3x faster at batch 1, 1.7x at
 16, 1.9x at 256; grad of a 100-step rollout compiled in 94 s instead of 157 s and ran in 0.64 s
