@@ -104,6 +104,26 @@ def test_normaliser_matches_the_mean_and_variance_of_all_batches_seen():
     assert float(stats.count) == 48.0
 
 
+def test_absorbing_a_normaliser_update_leaves_the_network_computing_the_same():
+    """After the first layer absorbs a change of the statistics, the MLP on the new normalisation
+    gives what it gave on the old one (observations within the +-10 clip of both)."""
+    rng = np.random.default_rng(4)
+    layers = rl.init_mlp(jax.random.PRNGKey(5), (6, 16, 3), last_scale=1.0)
+    fresh = rl.init_normaliser(6)
+    before = rl.update_normaliser(fresh, jnp.asarray(rng.normal(0.5, 0.2, size=(50, 6))))
+    after = rl.update_normaliser(before, jnp.asarray(rng.normal(-0.3, 0.05, size=(500, 6))))
+    obs = jnp.asarray(rng.normal(0.0, 0.3, size=(20, 6)), jnp.float32)
+    assert np.all(np.abs(rl.normalise(before, obs)) < 10.0) and np.all(np.abs(rl.normalise(after, obs)) < 10.0)
+    old = rl.apply_mlp(layers, rl.normalise(before, obs))
+    new = rl.apply_mlp(rl.absorb_normaliser_update(layers, before, after), rl.normalise(after, obs))
+    assert float(jnp.max(jnp.abs(rl.apply_mlp(layers, rl.normalise(after, obs)) - old))) > 0.1  # it had moved
+    np.testing.assert_allclose(new, old, atol=2e-5)
+    # The placeholder statistics (count 0) are replaced, not absorbed: the layers stay as initialised.
+    for kept, initial in zip(jax.tree.leaves(rl.absorb_normaliser_update(layers, fresh, before)),
+                             jax.tree.leaves(layers), strict=True):  # fmt: skip
+        np.testing.assert_array_equal(kept, initial)
+
+
 def test_untrained_policy_acts_the_home_pose(stand):
     """The last layer starts at zero: the action is exactly the build pose's, whatever the
     observation (and whatever the normaliser's statistics)."""

@@ -11,7 +11,8 @@ what the agent may do (every action in [-1, 1] stays reachable).
 
 Observation normalisation: running mean and variance over every observation seen in training
 (batched Welford/Chan update), the network sees (obs - mean) / (sqrt(var) + 0.01) clipped to +-10
-(`NORMALISER_EPS`).
+(`NORMALISER_EPS`). PPO lets its networks' first layers absorb each update of the statistics
+(`absorb_normaliser_update`), so that the statistics never move the policy themselves.
 """
 
 from __future__ import annotations
@@ -101,6 +102,26 @@ def normalise(stats: Normaliser, obs: jnp.ndarray) -> jnp.ndarray:
     """(obs - mean) / (std + `NORMALISER_EPS`), clipped to +-10 (before any update, with mean 0 and
     var 1: obs / 1.01)."""
     return jnp.clip((obs - stats.mean) / (jnp.sqrt(stats.var) + NORMALISER_EPS), -10.0, 10.0)
+
+
+def absorb_normaliser_update(layers: list[dict], before: Normaliser, after: Normaliser) -> list[dict]:
+    """The MLP `layers` with its first layer changed so that on `after`'s normalisation it computes
+    what it computed on `before`'s (exactly, for observations the +-10 clip leaves alone).
+
+    With x = (obs - mean) / (std + eps): x_before = a x_after + c, a = (std_after + eps) /
+    (std_before + eps), c = (mean_after - mean_before) / (std_before + eps), so w' = a w (row-wise)
+    and b' = b + c w. Why: a statistics update otherwise moves a trained policy as much as a
+    gradient step might; with a small exploration std that is a large change of the policy (PPO
+    on RagdollStand-v0 lost its gain this way: README, Reinforcement learning). The first update
+    (`before.count` 0: the placeholder statistics, mean 0 and variance 1) is not absorbed: the
+    network was initialised for unit-scale inputs, and absorbing would scale its first layer by
+    the observations' raw stds instead (the policy's zero last layer keeps its output unchanged)."""
+    fresh = before.count == 0
+    scale = (jnp.sqrt(after.var) + NORMALISER_EPS) / (jnp.sqrt(before.var) + NORMALISER_EPS)
+    offset = (after.mean - before.mean) / (jnp.sqrt(before.var) + NORMALISER_EPS)
+    first = layers[0]
+    absorbed = {"w": scale[:, None] * first["w"], "b": first["b"] + offset @ first["w"]}
+    return [jax.tree.map(lambda new, old: jnp.where(fresh, old, new), absorbed, first), *layers[1:]]
 
 
 def home_action(task: DbdFuncEnv) -> jnp.ndarray:
