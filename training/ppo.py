@@ -103,9 +103,10 @@ class PPOConfig:
     layers of both networks so that they compute what they computed before it
     (`rl.absorb_normaliser_update`): the statistics then only condition the learning and never
     move the policy themselves. Without it, on RagdollStand-v0 in the test's setting, the
-    statistics' updates alone moved the rollout policy by a KL of 0.01-0.03 per iteration (the
-    `normaliser_kl` metric), as much as the gradient steps, from the iteration the training
-    return peaked (191 at 61) on, and the return fell to 55-75 (README: Reinforcement learning).
+    statistics' updates alone moved the rollout policy by a KL of 0.009-0.028 per iteration
+    (the `normaliser_kl` metric, iterations 80-200), as much as the gradient steps, after the
+    training return peaked (191 at iteration 61), and the return fell to 55-75 (README:
+    Reinforcement learning).
     """
 
     num_envs: int = 32
