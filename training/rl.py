@@ -98,10 +98,15 @@ def update_normaliser(stats: Normaliser, batch: jnp.ndarray) -> Normaliser:
 NORMALISER_EPS = 0.01
 
 
+def _divisor(stats: Normaliser) -> jnp.ndarray:
+    """(D,) what `normalise` divides by: std + `NORMALISER_EPS`."""
+    return jnp.sqrt(stats.var) + NORMALISER_EPS
+
+
 def normalise(stats: Normaliser, obs: jnp.ndarray) -> jnp.ndarray:
     """(obs - mean) / (std + `NORMALISER_EPS`), clipped to +-10 (before any update, with mean 0 and
     var 1: obs / 1.01)."""
-    return jnp.clip((obs - stats.mean) / (jnp.sqrt(stats.var) + NORMALISER_EPS), -10.0, 10.0)
+    return jnp.clip((obs - stats.mean) / _divisor(stats), -10.0, 10.0)
 
 
 def absorb_normaliser_update(layers: list[dict], before: Normaliser, after: Normaliser) -> list[dict]:
@@ -115,10 +120,12 @@ def absorb_normaliser_update(layers: list[dict], before: Normaliser, after: Norm
     on RagdollStand-v0 lost its gain this way: README, Reinforcement learning). The first update
     (`before.count` 0: the placeholder statistics, mean 0 and variance 1) is not absorbed: the
     network was initialised for unit-scale inputs, and absorbing would scale its first layer by
-    the observations' raw stds instead (the policy's zero last layer keeps its output unchanged)."""
+    the observations' raw stds instead. (In PPO the policy's last layer is still zero at that
+    update, so its output does not change; APG updates the statistics after its first gradient
+    step, which that first update therefore moves.)"""
     fresh = before.count == 0
-    scale = (jnp.sqrt(after.var) + NORMALISER_EPS) / (jnp.sqrt(before.var) + NORMALISER_EPS)
-    offset = (after.mean - before.mean) / (jnp.sqrt(before.var) + NORMALISER_EPS)
+    scale = _divisor(after) / _divisor(before)
+    offset = (after.mean - before.mean) / _divisor(before)
     first = layers[0]
     absorbed = {"w": scale[:, None] * first["w"], "b": first["b"] + offset @ first["w"]}
     return [jax.tree.map(lambda new, old: jnp.where(fresh, old, new), absorbed, first), *layers[1:]]
