@@ -12,8 +12,13 @@ the build pose (action 0, every drive holding the standing pose) and the capture
 3. Ankle targets (a lean) with no pushes, 150 steps: the COM's forward position and who falls.
 4. The env's own random pushes (every 2 s on average) of several speed ranges, 32 episodes of
    300 steps: the fraction that survives the whole episode.
+5. The solver budget: an ankle lean of -0.036 rad ramped in over 1 s, no pushes, 150 steps, at
+   several substeps x iterations: where the ankles end and whether the doll stands (at 2 x 8 the
+   ankles sag to -0.1 rad and it falls: README, "The solver budget sets the ankles' stiffness").
+6. Ramped ankle leans under the env's pushes, 48 episodes of 300 steps, at two budgets.
 
     python benchmarks/ragdoll_push_recovery.py [--out benchmarks/results/ragdoll_push_recovery.json]
+    python benchmarks/ragdoll_push_recovery.py --only budgets ramped   # sections 5 and 6 alone
 """
 
 from __future__ import annotations
@@ -152,19 +157,88 @@ def random_pushes(speed_ranges, episodes: int = 32, steps: int = 300) -> list[di
     return rows
 
 
+def ramped_lean_episodes(ankle_action: np.ndarray, episodes: int, steps: int, ramp: int = 30, **env_kwargs) -> dict:
+    """RagdollStand (default pushes, `env_kwargs` for the physics) with the build pose plus one ankle
+    action per row, ramped in linearly over `ramp` steps and then held; `episodes` episodes (seed 1)
+    per row. Returns per row: the final ankle angles (rad, mean of both ankles, fallen episodes
+    included), the survival and the mean episode length."""
+    task = RagdollStand(max_episode_steps=steps, **env_kwargs)
+    ankles = np.array([task.doll.controls[name].start for name in ("ankle_l", "ankle_r")])
+    rows = len(ankle_action)
+    per_episode = jnp.repeat(jnp.asarray(ankle_action, jnp.float32), episodes)
+    keys = jnp.tile(jax.random.split(jax.random.PRNGKey(1), episodes), (rows, 1))
+
+    @dbd.jit
+    def run(keys):
+        state, _, _ = jax.vmap(task.reset)(keys)
+
+        def body(carry, t):
+            state, alive, length = carry
+            lean = per_episode * jnp.minimum(1.0, (t + 1.0) / ramp)
+            action = jnp.zeros((len(per_episode), 26)).at[:, ankles].set(lean[:, None])
+            state, _, _, terminated, _, _ = jax.vmap(task.step)(state, action)
+            return (state, alive & ~terminated, length + alive), None
+
+        start = (state, jnp.ones(len(per_episode), bool), jnp.zeros(len(per_episode), jnp.int32))
+        (state, alive, length), _ = jax.lax.scan(body, start, jnp.arange(steps, dtype=jnp.float32))
+        angles = jax.vmap(task.joints)(state.physics)[0][:, ankles].mean(-1)
+        return angles, alive, length
+
+    angles, alive, length = (np.asarray(x).reshape(rows, episodes) for x in run(keys))
+    return {"ankle_action": [float(a) for a in ankle_action],
+            "ankle_target_rad": [float(a * task.control_scale[ankles[0]]) for a in ankle_action],
+            "ankle_angle_rad": angles.mean(1).round(4).tolist(), "survived": alive.sum(1).tolist(),
+            "episodes": episodes, "mean_steps": length.mean(1).round(1).tolist()}  # fmt: skip
+
+
+def solver_budgets(budgets, ankle_action: float = -0.045) -> list[dict]:
+    """Section 5: one ramped lean with no pushes, 150 steps, at each (substeps, iterations)."""
+    rows = []
+    for substeps, iterations in budgets:
+        row = ramped_lean_episodes(np.array([ankle_action]), 1, 150, push_interval=None, substeps=substeps,
+                                   iterations=iterations)  # fmt: skip
+        rows.append({"substeps": substeps, "iterations": iterations, "sweeps_per_step": substeps * iterations,
+                     "ankle_target_rad": row["ankle_target_rad"][0], "ankle_angle_rad": row["ankle_angle_rad"][0],
+                     "stood_150_steps": bool(row["survived"][0])})  # fmt: skip
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "ragdoll_push_recovery.json"))
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=["support", "kicks", "leans", "pushes", "budgets", "ramped"],
+        help="run these sections alone (default: all)",
+    )
     args = parser.parse_args()
+    sections = set(args.only or ["support", "kicks", "leans", "pushes", "budgets", "ramped"])
     start = time.perf_counter()
     task = RagdollStand(max_episode_steps=300, push_interval=None)
-    result = {"support": support(task)}
-    print(json.dumps(result["support"], indent=1), flush=True)
-    result["single_kicks"] = single_kicks(task, np.array([0.3, 0.6, 1.0, 1.5]), np.arange(8) * np.pi / 4)
-    print(result["single_kicks"], flush=True)
-    result["leans"] = leans(task, [-0.1, -0.05, -0.025, 0.0, 0.025, 0.05])
-    print(result["leans"], flush=True)
-    result["random_pushes"] = random_pushes([(0.0, 0.0), (0.3, 0.6), (0.5, 1.5)])
+    result = {"env_substeps": task.model.options.substeps, "env_iterations": task.model.options.iterations}
+    if "support" in sections:
+        result["support"] = support(task)
+        print(json.dumps(result["support"], indent=1), flush=True)
+    if "kicks" in sections:
+        result["single_kicks"] = single_kicks(task, np.array([0.3, 0.6, 1.0, 1.5]), np.arange(8) * np.pi / 4)
+        print(result["single_kicks"], flush=True)
+    if "leans" in sections:
+        result["leans"] = leans(task, [-0.1, -0.05, -0.025, 0.0, 0.025, 0.05])
+        print(result["leans"], flush=True)
+    if "pushes" in sections:
+        result["random_pushes"] = random_pushes([(0.0, 0.0), (0.3, 0.6), (0.5, 1.5)])
+    if "budgets" in sections:
+        result["solver_budgets"] = solver_budgets([(2, 8), (4, 4), (3, 8), (4, 6), (2, 16), (4, 8), (8, 4), (2, 32),
+                                                   (8, 8)])  # fmt: skip
+    if "ramped" in sections:
+        result["ramped_leans_under_pushes"] = []
+        for substeps in (2, 4):
+            row = ramped_lean_episodes(np.array([0.0, -0.01, -0.02, -0.03, -0.045, -0.06, -0.08]), 48, 300,
+                                       substeps=substeps, iterations=8)  # fmt: skip
+            result["ramped_leans_under_pushes"].append(dict(row, substeps=substeps, iterations=8))
+            print(result["ramped_leans_under_pushes"][-1], flush=True)
     result["wall_s"] = time.perf_counter() - start
     result["load_average_at_end"] = list(os.getloadavg())
     Path(args.out).write_text(json.dumps(result, indent=1))

@@ -28,8 +28,19 @@ and cosine of the reference phase (2): 161.
 
 Termination: the pelvis centre below `fall_height` (default 0.55 x its standing height), or a
 non-finite action or physics state (info flags). Truncation: `max_episode_steps` (300 when
-registered: 10 s at 30 Hz). Physics: dt = 1/60 s with the ragdoll module's substeps and
-iterations, `frame_skip` 2.
+registered: 10 s at 30 Hz). Physics: dt = 1/60 s, `substeps` 4 (`SUBSTEPS`), the ragdoll module's
+`iterations` (8), `frame_skip` 2.
+
+The solver budget decides how stiff the drives are under the body's weight. The ankles carry the
+whole doll on two 1.2 kg feet, and Gauss-Seidel passes that load up the chain a little per sweep:
+with 2 substeps x 8 iterations (the ragdoll module's default, 16 sweeps per physics step) an
+ankle target of -0.036 rad (action -0.045, leaning the centre of mass 4 cm forward) sagged to
+-0.10..-0.12 rad, the heels lifted and the doll fell on its face within 1.5 s with no push; the
+same lean holds at -0.051 rad with 32 sweeps (4 x 8, 2 x 16 or 8 x 4 alike) and at -0.043 with
+64 (converged: 2 x 32 and 8 x 8 agree). With the pushes on, the home pose with that lean ramped
+in over 1 s and held stands through 41 of 48 episodes of 300 steps at 4 x 8, and 0 of 48 at
+2 x 8 (whose best constant lean, -0.01 or -0.02, stands 15 of 48). Each step costs twice as
+much (335 against 666 env steps/s at batch 64, one core).
 
 Pushes: at each step, with probability dt / `push_interval` (one push every `push_interval`
 seconds on average), the torso's velocity changes by a horizontal kick of random direction and a
@@ -41,8 +52,9 @@ pushes be survived?"), a torso kick is recoverable without a step up to 0.76 m/s
 backwards with the centre of mass over the middle of the feet (0.98 m/s sideways), but only
 0.24 m/s backwards from the build pose, whose centre of mass is 2 cm from the heel edge; so
 every default push can be survived by balancing (leaning, ankle and hip torques), and the build
-pose alone survives few episodes (1 of 32 full 300-step episodes, where a constant forward ankle
-lean of 0.008 rad survives 10 of 32). Most kicks of the old range need a step, which left the
+pose alone survives few episodes (9 of 48 full 300-step episodes, where a forward ankle lean of
+0.036 rad, ramped in over 1 s, survives 41 of 48; at the former 2 substeps: 1 of 32, and 10 of
+32 for the best lean, 0.008 rad). Most kicks of the old range need a step, which left the
 learners no strategy within reach (`push_speed=(0.5, 1.5)` gives it back).
 """
 
@@ -60,6 +72,8 @@ import dbdjax as dbd
 from dbdjax import math, ragdoll
 from dbdjax.envs.core import DbdFuncEnv, EnvState, joint_coordinates, yaw_rotate_inverse
 from dbdjax.envs.wrappers import DbdEnv, DbdVectorEnv
+
+SUBSTEPS = 4  # the envs' substeps per physics step (module docstring: why not ragdoll.SUBSTEPS)
 
 
 class RagdollState(NamedTuple):
@@ -99,7 +113,7 @@ class RagdollEnv(DbdFuncEnv):
         fall_height: float | None = None,
         smooth_weight: float = 0.1,
         dt: float = ragdoll.DT,
-        substeps: int = ragdoll.SUBSTEPS,
+        substeps: int = SUBSTEPS,
         iterations: int = ragdoll.ITERATIONS,
         frame_skip: int = 2,
         max_episode_steps: int | None = None,
