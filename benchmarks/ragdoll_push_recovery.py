@@ -175,7 +175,7 @@ def ramped_lean_episodes(ankle_action: np.ndarray, episodes: int, steps: int, ra
         def body(carry, t):
             state, alive, length = carry
             lean = per_episode * jnp.minimum(1.0, (t + 1.0) / ramp)
-            action = jnp.zeros((len(per_episode), 26)).at[:, ankles].set(lean[:, None])
+            action = jnp.zeros((len(per_episode), task.action_size)).at[:, ankles].set(lean[:, None])
             state, _, _, terminated, _, _ = jax.vmap(task.step)(state, action)
             return (state, alive & ~terminated, length + alive), None
 
