@@ -198,8 +198,9 @@ def solver_budgets(budgets, ankle_action: float = -0.045) -> list[dict]:
         row = ramped_lean_episodes(np.array([ankle_action]), 1, 150, push_interval=None, substeps=substeps,
                                    iterations=iterations)  # fmt: skip
         rows.append({"substeps": substeps, "iterations": iterations, "sweeps_per_step": substeps * iterations,
-                     "ankle_target_rad": row["ankle_target_rad"][0], "ankle_angle_rad": row["ankle_angle_rad"][0],
-                     "stood_150_steps": bool(row["survived"][0])})  # fmt: skip
+                     "ankle_target_rad": row["ankle_target_rad"][0], "stood_150_steps": bool(row["survived"][0]),
+                     # where the ankles ended: meaningless once the doll lies on the floor
+                     "ankle_angle_rad": row["ankle_angle_rad"][0] if row["survived"][0] else None})  # fmt: skip
         print(rows[-1], flush=True)
     return rows
 
