@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import math
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -78,20 +79,26 @@ class PPOConfig:
     58 of 60 on the same pushes). normalise_observations: running
     mean/std normalisation. reward_scale: multiplies rewards before the value targets.
     desired_kl: None, or the KL-adaptive learning rate of rsl_rl (legged_gym's PPO): before each
-    minibatch step the learning rate is divided by 1.5 when the policy's approximate KL from the
-    rollout policy exceeds 2 x desired_kl and multiplied by 1.5 when it is under desired_kl / 2
+    minibatch step the learning rate is divided by 1.5 when the policy's KL from the rollout
+    policy (`policy_kl`: N(mean(s), std^2), the policy without memory of its noise) exceeds
+    2 x desired_kl and multiplied by 1.5 when it is under desired_kl / 2
     (kept in [1e-5, 1e-2]); `learning_rate` is then its starting value (no decay). A small
     exploration std makes a fixed Adam step a large change of the policy (the KL of a mean shift
     grows as 1 / std^2): the adaptive rate keeps each update's change of the policy bounded.
     noise_correlation: rho in [0, 1), the exploration noise is AR(1) in time, noise_t = rho
     noise_{t-1} + sqrt(1 - rho^2) std xi_t (stationary std `exp(log_std)`, correlation time
     1 / (1 - rho) steps; a new episode starts from a stationary draw). 0: independent per step.
-    Independent noise of a size the standing doll tolerates averages out within a few steps
-    (the stiff drives undo a one-step target error), so its effect on the return, hence the
-    policy gradient's signal, is small next to the pushes' randomness; correlated noise of the
-    same size holds a deviation (a lean, say) long enough to matter. The step's policy is
-    N(mean + rho noise_{t-1}, (sqrt(1 - rho^2) std)^2) with noise_{t-1} part of the state it acts
-    in (Transition.shift), so the likelihood ratios stay exact.
+    The step's policy is N(mean(s_t) + rho (a_{t-1} - mean(s_{t-1})), (sqrt(1 - rho^2) std)^2):
+    the last noise is the policy's own (`step_distribution_mean`). Until session 17 it was held
+    fixed as a part of the state (`Transition.shift`), which credits mean(s_t) with the effect of
+    a deviation that lasts the correlation time; on RagdollStand-v0 (the PPO test's setting, rho
+    0.9) that grew a state-dependent ankle feedback every iteration (its spread over the batch
+    0.001 -> 0.029 action units in 100 iterations) while the training return fell 94 -> 55. With
+    the likelihood right it is worse still there (a backward lean of 0.014 and a spread of 0.031 in
+    20 iterations, return 94 -> 64): the noise's effect on the doll shows in the observation, and
+    the policy learns to counter its own noise, which the noise-free policy that is evaluated
+    does not have. Independent noise (0, the default) raised the training return 94 -> 177 over
+    the same 100 iterations (README: Reinforcement learning).
     explored_actions: None (every action entry explores), or the indices of the action entries
     that do: the others get no noise and no part in the log-probability, so no gradient reaches
     their output weights (zero at the start) and the policy keeps acting their home value. On
@@ -147,12 +154,19 @@ class TrainState(NamedTuple):
     episode_length: jnp.ndarray  # (num_envs,) int32
     key: jnp.ndarray
     noise: jnp.ndarray  # (num_envs, A) the exploration noise of the last action (action - mean)
+    previous_obs: jnp.ndarray  # (num_envs, obs_size) the observation the last action was taken in
+    previous_action: jnp.ndarray  # (num_envs, A) the last action
+    continuing: jnp.ndarray  # (num_envs,) bool: the last action belongs to the running episode
 
 
 class Transition(NamedTuple):
     obs: jnp.ndarray
     action: jnp.ndarray
     shift: jnp.ndarray  # the correlated part of the noise, rho x the last noise (zeros when rho = 0)
+    mean: jnp.ndarray  # the rollout policy's mean action at obs
+    previous_obs: jnp.ndarray  # the observation of the episode's previous step (see `continuing`)
+    previous_action: jnp.ndarray  # the action of the episode's previous step
+    continuing: jnp.ndarray  # False at an episode's first step: its shift is a fresh stationary draw
     log_prob: jnp.ndarray
     value: jnp.ndarray
     reward: jnp.ndarray
@@ -221,6 +235,28 @@ def make_optimiser(config: PPOConfig, iterations: int | None) -> optax.GradientT
     return optax.chain(clip, optax.adam(rate, eps=1e-5))
 
 
+def policy_and_value(task: DbdFuncEnv, params: dict, stats: rl.Normaliser, obs: jnp.ndarray):
+    """(the policy's mean action (..., A), the value (...,)) at observations obs (..., obs_size)."""
+    x = rl.normalise(stats, obs)
+    mean = rl.home_action(task) + rl.apply_mlp(params["policy"], x)
+    value = rl.apply_mlp(params["value"], x)[..., 0]
+    return mean, value
+
+
+def step_distribution_mean(task: DbdFuncEnv, config: PPOConfig, params: dict, stats: rl.Normaliser, batch: Transition):
+    """(the policy's mean at s_t, the mean of the step's action distribution) under `params`, (..., A) each.
+
+    The step's mean is mean(s_t) + rho (a_{t-1} - mean(s_{t-1})): the last noise depends on the
+    policy too, so a policy whose mean changes by d(s) draws its steps around d(s_t) - rho d(s_{t-1}).
+    Holding the recorded shift fixed instead (as this trainer did before) credits mean(s_t) with
+    the return of a deviation that persists for the noise's correlation time (1 / (1 - rho)
+    steps). An episode's first shift is a stationary draw, not the policy's."""
+    mean, _ = policy_and_value(task, params, stats, batch.obs)
+    previous_mean, _ = policy_and_value(task, params, stats, batch.previous_obs)
+    own_shift = config.noise_correlation * (batch.previous_action - previous_mean)
+    return mean, mean + jnp.where(batch.continuing[..., None], own_shift, batch.shift)
+
+
 def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTransformation):
     """The jitted training iteration: TrainState -> (TrainState, metrics dict of scalars)."""
     if config.batch_size % config.num_minibatches:
@@ -229,11 +265,8 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
     reset_envs = jax.vmap(task.reset)
     explored = explored_mask(task, config)
 
-    def networks(params, stats, obs):
-        x = rl.normalise(stats, obs)
-        mean = rl.home_action(task) + rl.apply_mlp(params["policy"], x)
-        value = rl.apply_mlp(params["value"], x)[..., 0]
-        return mean, value
+    networks = functools.partial(policy_and_value, task)
+    step_mean = functools.partial(step_distribution_mean, task, config)
 
     def env_step(carry: TrainState, _):
         params, stats = carry.params, carry.stats
@@ -270,16 +303,20 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         fresh_noise = explored * jnp.exp(params["log_std"]) * jax.random.normal(noise_key, mean.shape)
         new_carry = carry._replace(
             noise=jnp.where(done[:, None], fresh_noise, action - mean),
+            previous_obs=carry.obs,
+            previous_action=action,
+            continuing=~done,
             env_state=env_state,
             obs=obs,
             episode_return=jnp.where(done, 0.0, episode_return),
             episode_length=jnp.where(done, 0, episode_length),
             key=key,
         )
-        return new_carry, (
-            Transition(carry.obs, action, shift, log_prob, value, reward, next_obs, terminated, truncated),
-            ended,
-        )
+        transition = Transition(obs=carry.obs, action=action, shift=shift, mean=mean, previous_obs=carry.previous_obs,
+                                previous_action=carry.previous_action, continuing=carry.continuing,
+                                log_prob=log_prob, value=value, reward=reward, next_obs=next_obs,
+                                terminated=terminated, truncated=truncated)  # fmt: skip
+        return new_carry, (transition, ended)
 
     def rollout(state: TrainState):
         return jax.lax.scan(env_step, state, None, length=config.unroll_length)
@@ -300,9 +337,10 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         return advantage, advantage + batch.value
 
     def loss_function(params, stats, minibatch, advantage, target):
-        mean, value = networks(params, stats, minibatch.obs)
+        _, value = networks(params, stats, minibatch.obs)
+        mean, mean_of_step = step_mean(params, stats, minibatch)
         innovation = _innovation_log_std(params["log_std"], config.noise_correlation)
-        log_prob = _gaussian_log_prob(mean + minibatch.shift, innovation, minibatch.action, explored)
+        log_prob = _gaussian_log_prob(mean_of_step, innovation, minibatch.action, explored)
         ratio = jnp.exp(log_prob - minibatch.log_prob)
         normalised = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
         surrogate = jnp.minimum(
@@ -313,14 +351,22 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         entropy = jnp.sum(explored * (params["log_std"] + 0.5 * math.log(2.0 * math.pi * math.e)))
         total = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
         approx_kl = jnp.mean((ratio - 1.0) - jnp.log(ratio))
-        return total, {"policy_loss": policy_loss, "value_loss": value_loss, "approx_kl": approx_kl}
+        # The trust region the learning rate keeps (`desired_kl`) is on the policy's mean, the policy
+        # the evaluation acts: the KL of N(mean(s), std^2) from the rollout's. With correlated noise
+        # the step's ratio is no measure of it, as a slowly varying change d(s) of the mean moves a
+        # step's distribution only by about d(s_t) - rho d(s_{t-1}). With independent noise the two
+        # are the same KL, up to a change of the std, which only the ratio sees.
+        change = explored * (mean - minibatch.mean) / jnp.exp(params["log_std"])
+        policy_kl = jnp.mean(jnp.sum(0.5 * change**2, axis=-1))
+        return total, {"policy_loss": policy_loss, "value_loss": value_loss, "approx_kl": approx_kl,
+                       "policy_kl": policy_kl}  # fmt: skip
 
     def update_minibatch(carry, minibatch):
         params, opt_state, stats = carry
         batch, advantage, target = minibatch
         grads, info = jax.grad(loss_function, has_aux=True)(params, stats, batch, advantage, target)
         if config.desired_kl is not None:
-            opt_state = _adapt_learning_rate(opt_state, info["approx_kl"], config.desired_kl)
+            opt_state = _adapt_learning_rate(opt_state, info["policy_kl"], config.desired_kl)
             info["learning_rate"] = opt_state[1].hyperparams["learning_rate"]
         updates, opt_state = optimiser.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
@@ -349,8 +395,8 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         # a small exploration std a small shift of the normalisation is a large change of the policy.
         mean_before, _ = networks(state.params, state.stats, batch.obs)
         mean_after, _ = networks(params, stats, batch.obs)
-        innovation = _innovation_log_std(state.params["log_std"], config.noise_correlation)
-        normaliser_kl = jnp.mean(jnp.sum(explored * 0.5 * ((mean_after - mean_before) / jnp.exp(innovation)) ** 2, -1))
+        change = explored * (mean_after - mean_before) / jnp.exp(state.params["log_std"])
+        normaliser_kl = jnp.mean(jnp.sum(0.5 * change**2, axis=-1))
         flat = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), (batch, advantage, target))
         key, epoch_key = jax.random.split(state.key)
         (params, opt_state, _, _), info = jax.lax.scan(
@@ -385,6 +431,34 @@ def export_params(state: TrainState) -> dict:
 act = rl.act  # the deterministic policy of exported (or loaded) params
 
 
+def init_state(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTransformation, seed: int) -> TrainState:
+    """The state before the first iteration: fresh networks, `num_envs` envs reset, each with a
+    stationary draw of the exploration noise."""
+    key = jax.random.PRNGKey(seed)
+    key, init_key, env_key, noise_key = jax.random.split(key, 4)
+    params = init_params(task, config, init_key)
+    env_state, obs, _ = jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
+    noise = (
+        explored_mask(task, config)
+        * jnp.exp(params["log_std"])
+        * jax.random.normal(noise_key, (config.num_envs, task.action_size))
+    )
+    return TrainState(
+        params=params,
+        opt_state=optimiser.init(params),
+        stats=rl.init_normaliser(task.observation_size),
+        env_state=env_state,
+        obs=obs,
+        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
+        episode_length=jnp.zeros((config.num_envs,), jnp.int32),
+        key=key,
+        noise=noise,
+        previous_obs=obs,
+        previous_action=jnp.broadcast_to(rl.home_action(task), noise.shape),
+        continuing=jnp.zeros((config.num_envs,), bool),
+    )
+
+
 def train(
     task: DbdFuncEnv,
     config: PPOConfig = PPOConfig(),
@@ -413,23 +487,7 @@ def train(
     clock = rl.Clock()
     if not 0.0 <= config.noise_correlation < 1.0:
         raise ValueError(f"train: noise_correlation must be in [0, 1), got {config.noise_correlation!r}")
-    key = jax.random.PRNGKey(seed)
-    key, init_key, env_key, noise_key = jax.random.split(key, 4)
-    params = init_params(task, config, init_key)
-    env_state, obs, _ = jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
-    state = TrainState(
-        params=params,
-        opt_state=optimiser.init(params),
-        stats=rl.init_normaliser(task.observation_size),
-        env_state=env_state,
-        obs=obs,
-        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
-        episode_length=jnp.zeros((config.num_envs,), jnp.int32),
-        key=key,
-        noise=explored_mask(task, config)
-        * jnp.exp(params["log_std"])
-        * jax.random.normal(noise_key, (config.num_envs, task.action_size)),
-    )
+    state = init_state(task, config, optimiser, seed)
 
     def failure(row: dict) -> str | None:
         finite = all(math.isfinite(row[name]) for name in ("policy_loss", "value_loss", "std"))
