@@ -448,6 +448,15 @@ def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
     panels = [("episode_return", "eval_mean_return", "episode return"),
               ("episode_length", "eval_mean_length", "episode length (steps)")]  # fmt: skip
     walls = np.array([row.get("wall_s", np.nan) for row in history], float) / 60.0
+    clock_axis = None  # (env steps -> minutes, minutes -> env steps) for the top axis
+    if len(steps) > 1 and np.all(np.isfinite(walls)) and walls[-1] > walls[0] and steps[-1] > steps[0]:
+        # Extended linearly past both ends at the run's mean rate: clamped, every tick past the
+        # last iteration (a 35 beside the 30) was drawn at the right edge.
+        reach = 1e3 * (steps[-1] - steps[0])
+        rate = (walls[-1] - walls[0]) / (steps[-1] - steps[0])
+        step_axis = np.concatenate([[steps[0] - reach], steps, [steps[-1] + reach]])
+        wall_axis = np.concatenate([[walls[0] - reach * rate], walls, [walls[-1] + reach * rate]])
+        clock_axis = (lambda s: np.interp(s, step_axis, wall_axis), lambda m: np.interp(m, wall_axis, step_axis))
     for index, (key, eval_key, label) in enumerate(panels):
         ax = figure.add_subplot(1, 2, index + 1)
         values = np.array([row.get(key, np.nan) for row in history], float)
@@ -464,11 +473,8 @@ def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
         ax.set_xlabel("env steps")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
-        if len(steps) > 1 and np.all(np.isfinite(walls)):
-            top = ax.secondary_xaxis(
-                "top", functions=(lambda s: np.interp(s, steps, walls), lambda m: np.interp(m, walls, steps))
-            )
-            top.set_xlabel("wall-clock minutes")
+        if clock_axis is not None:
+            ax.secondary_xaxis("top", functions=clock_axis).set_xlabel("wall-clock minutes")
         ax.legend(loc="lower right", fontsize=8)
     figure.suptitle(title, fontsize=10)
     figure.tight_layout()
