@@ -93,12 +93,12 @@ class PPOConfig:
     fixed as a part of the state (`Transition.shift`), which credits mean(s_t) with the effect of
     a deviation that lasts the correlation time; on RagdollStand-v0 (the PPO test's setting, rho
     0.9) that grew a state-dependent ankle feedback every iteration (its spread over the batch
-    0.001 -> 0.029 action units in 100 iterations) while the training return fell 94 -> 55. With
-    the likelihood right it is worse still there (a backward lean of 0.014 and a spread of 0.031 in
-    20 iterations, return 94 -> 64): the noise's effect on the doll shows in the observation, and
-    the policy learns to counter its own noise, which the noise-free policy that is evaluated
-    does not have. Independent noise (0, the default) raised the training return 94 -> 177 over
-    the same 100 iterations (README: Reinforcement learning).
+    0.001 -> 0.029 action units in 100 iterations) while the training return fell 91 -> 55
+    (iterations 10 -> 100). With the likelihood right it is worse still there (a backward lean
+    of 0.014 and a spread of 0.031 in 20 iterations, return 95 -> 64): the noise's effect on the
+    doll shows in the observation, and the policy learns to counter its own noise, which the
+    noise-free policy that is evaluated does not have. Independent noise (0, the default) raised
+    the training return 95 -> 177 over the same 100 iterations (README: Reinforcement learning).
     explored_actions: None (every action entry explores), or the indices of the action entries
     that do: the others get no noise and no part in the log-probability, so no gradient reaches
     their output weights (zero at the start) and the policy keeps acting their home value. On
