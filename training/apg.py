@@ -200,15 +200,10 @@ def train(
     clock = rl.Clock()
     key, init_key, env_key = jax.random.split(jax.random.PRNGKey(seed), 3)
     policy = rl.init_mlp(init_key, (task.observation_size, *config.hidden, task.action_size), config.init_scale)
-    env_state, obs, _ = jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
     state = TrainState(
         policy=policy,
         opt_state=optimiser.init(policy),
-        stats=rl.init_normaliser(task.observation_size),
-        env_state=env_state,
-        obs=obs,
-        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
-        episode_length=jnp.zeros((config.num_envs,), jnp.int32),
+        **rl.fresh_envs(task, config.num_envs, env_key),
         key=key,
     )
     result = rl.run(

@@ -437,7 +437,7 @@ def init_state(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTra
     key = jax.random.PRNGKey(seed)
     key, init_key, env_key, noise_key = jax.random.split(key, 4)
     params = init_params(task, config, init_key)
-    env_state, obs, _ = jit(jax.vmap(task.reset))(jax.random.split(env_key, config.num_envs))
+    envs = rl.fresh_envs(task, config.num_envs, env_key)
     noise = (
         explored_mask(task, config)
         * jnp.exp(params["log_std"])
@@ -446,15 +446,11 @@ def init_state(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTra
     return TrainState(
         params=params,
         opt_state=optimiser.init(params),
-        stats=rl.init_normaliser(task.observation_size),
-        env_state=env_state,
-        obs=obs,
-        episode_return=jnp.zeros((config.num_envs,), jnp.float32),
-        episode_length=jnp.zeros((config.num_envs,), jnp.int32),
         key=key,
         noise=noise,
-        previous_obs=obs,
+        previous_obs=envs["obs"],
         previous_action=jnp.broadcast_to(rl.home_action(task), noise.shape),
+        **envs,
         continuing=jnp.zeros((config.num_envs,), bool),
     )
 

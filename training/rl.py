@@ -214,6 +214,19 @@ def evaluate(
 # ----------------------------------------------------------------------------- the training loop
 
 
+def fresh_envs(task: DbdFuncEnv, num_envs: int, key: jax.Array) -> dict[str, Any]:
+    """The fields both trainers' states start with: `num_envs` envs reset from `key` ("env_state",
+    "obs"), no returns or lengths counted yet, and the placeholder observation statistics."""
+    env_state, obs, _ = jit(jax.vmap(task.reset))(jax.random.split(key, num_envs))
+    return {
+        "stats": init_normaliser(task.observation_size),
+        "env_state": env_state,
+        "obs": obs,
+        "episode_return": jnp.zeros((num_envs,), jnp.float32),
+        "episode_length": jnp.zeros((num_envs,), jnp.int32),
+    }
+
+
 @dataclasses.dataclass
 class Result:
     """What `ppo.train` and `apg.train` return: params (numpy; the checkpoint's content, `act`
