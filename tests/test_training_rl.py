@@ -210,8 +210,8 @@ def test_ppo_improves_the_return_on_ragdoll_stand(stand_full):
 
     Independent exploration noise (session 17): with AR(1) noise (rho 0.9, this test's setting
     until then) the policy learned an ankle feedback that counters its own noise and lost return
-    for its first 100 iterations. 100 iterations: at the env's 4 x 8 physics 32 gained -1.46 +-
-    3.57, 100 gained 38.35 +- 6.57 (README: Reinforcement learning)."""
+    for its first 100 iterations. With independent noise at the env's 4 x 8 physics, 32
+    iterations gained -1.46 +- 3.57 and 100 gained 38.35 +- 6.57 (README: Reinforcement learning)."""
     config = ppo.PPOConfig(num_envs=64, unroll_length=16, num_minibatches=2, update_epochs=4,
                            explored_actions=ankle_actions(stand_full))  # fmt: skip
     result = ppo.train(stand_full, config, total_steps=PPO_STEPS, eval_episodes=128, evaluate_initial=True,
