@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from cli import help_text
 
-from dbdjax.envs import RagdollStand
+from dbdjax.envs import IKChainReach, RagdollStand
 from dbdjax.training import apg, checkpoint, ppo, rl
 
 
@@ -156,6 +156,19 @@ def test_a_constant_change_of_the_policy_moves_a_correlated_step_by_one_minus_rh
     np.testing.assert_allclose(step[1] - mean[1], batch.shift[1], atol=1e-6)
     previous_mean, _ = ppo.policy_and_value(stand, params, stats, batch.previous_obs[0])
     np.testing.assert_allclose(step[0] - mean[0], 0.8 * (batch.previous_action[0] - previous_mean), atol=1e-5)
+
+
+def test_every_rollout_starts_at_a_likelihood_ratio_of_one_with_correlated_noise():
+    """With one minibatch and one epoch, the approximate KL is measured before the update: the
+    rollout policy's own likelihood, so exactly 0 in every iteration. An unroll's first step
+    must keep the noise the previous iteration's policy drew (before that fix: 0.024, 0.013)."""
+    task = IKChainReach(max_episode_steps=10)
+    config = ppo.PPOConfig(num_envs=4, unroll_length=4, num_minibatches=1, update_epochs=1, hidden=(8,),
+                           noise_correlation=0.8, learning_rate=1e-3, desired_kl=None)  # fmt: skip
+    result = ppo.train(task, config, total_steps=48, eval_episodes=2, progress=False)
+    assert len(result.history) == 3
+    assert max(row["approx_kl"] for row in result.history) < 1e-6
+    assert max(row["grad_norm"] for row in result.history) > 0.0  # the policy did move between rollouts
 
 
 def test_untrained_policy_acts_the_home_pose(stand):

@@ -250,7 +250,8 @@ def step_distribution_mean(task: DbdFuncEnv, config: PPOConfig, params: dict, st
     policy too, so a policy whose mean changes by d(s) draws its steps around d(s_t) - rho d(s_{t-1}).
     Holding the recorded shift fixed instead (as this trainer did before) credits mean(s_t) with
     the return of a deviation that persists for the noise's correlation time (1 / (1 - rho)
-    steps). An episode's first shift is a stationary draw, not the policy's."""
+    steps). An episode's first shift is a stationary draw, not the policy's, and an unroll's first
+    shift comes from the previous iteration's policy: both are taken as recorded."""
     mean, _ = policy_and_value(task, params, stats, batch.obs)
     previous_mean, _ = policy_and_value(task, params, stats, batch.previous_obs)
     own_shift = config.noise_correlation * (batch.previous_action - previous_mean)
@@ -382,7 +383,10 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
 
     @jit
     def iteration(state: TrainState):
-        state, (batch, ended) = rollout(state)
+        # An unroll's first step keeps the noise it is drawn with as recorded (`continuing` False):
+        # the last iteration's policy made that noise, so recomputing it from the current policy's
+        # mean would give a step this rollout did not take (a likelihood ratio off 1 before any update).
+        state, (batch, ended) = rollout(state._replace(continuing=jnp.zeros_like(state.continuing)))
         # The statistics are updated before the updates (as Brax's PPO does): the networks are
         # fitted on the normalisation the next rollout will act with.
         stats = rl.update_normaliser(state.stats, batch.obs) if config.normalise_observations else state.stats
