@@ -1,5 +1,5 @@
-"""Batched rollouts sharded over a device mesh (four CPU devices in a subprocess, since the
-device count is fixed when jax starts)."""
+"""Batched rollouts, and the RL trainers' envs, sharded over a device mesh (CPU devices in a
+subprocess, since the device count is fixed when jax starts)."""
 
 import os
 import subprocess
@@ -38,16 +38,70 @@ SCRIPT = textwrap.dedent(
 )
 
 
-def test_batched_rollout_sharded_over_four_cpu_devices_matches_one_device():
+TRAINERS = textwrap.dedent(
+    """
+    import jax, numpy as np
+    from dbdjax.training import apg, ppo, rl
+
+    print("devices", rl.use_cpu_devices(2))  # before anything computes, as the command lines do
+    from dbdjax.envs import IKChainReach
+
+    task = IKChainReach(max_episode_steps=10)
+    config = ppo.PPOConfig(num_envs=4, unroll_length=4, num_minibatches=2, update_epochs=2, hidden=(8,),
+                           learning_rate=1e-3, desired_kl=None)
+    optimiser = ppo.make_optimiser(config, None)
+    iteration = ppo.make_iteration(task, config, optimiser)
+    finals = {}
+    for count in (1, 2):
+        devices = rl.env_devices(config.num_envs, jax.devices()[:count])
+        state = rl.distribute(ppo.init_state(task, config, optimiser, 0), ppo.BATCH_FIELDS, devices)
+        for _ in range(3):
+            state, metrics = iteration(state)
+        finals[count] = state
+    print("split", len(finals[2].obs.sharding.device_set), len(finals[2].env_state.physics.pos.sharding.device_set))
+    difference = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+                     for a, b in zip(jax.tree.leaves(finals[1].params), jax.tree.leaves(finals[2].params)))
+    print("ppo_params_difference", difference)
+    params = ppo.export_params(finals[2])
+    split = rl.evaluate(task, params, num_episodes=4, seed=3)
+    keys = jax.random.split(jax.random.PRNGKey(3), 4)
+    returns, _, _ = rl._episodes(task, 4, 10)(params, jax.device_put(keys, jax.devices()[0]))
+    print("evaluation_difference", float(np.max(np.abs(split["returns"] - np.asarray(returns)))))
+    result = apg.train(task, apg.APGConfig(num_envs=4, horizon=4, hidden=(8,)), updates=2, eval_episodes=2,
+                       progress=False)
+    print("apg", result.summary["devices"], bool(np.isfinite(result.history[-1]["reward_per_step"])))
+    """
+)
+
+
+def run_script(script: str, environment: dict[str, str]) -> dict[str, str]:
+    """Run `script` in a fresh Python with `environment` (tests/ and the repo on the path); its
+    printed lines "name value" as a dict."""
     tests = Path(__file__).parent
-    environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    environment = dict(environment, JAX_PLATFORMS="cpu")
     environment["PYTHONPATH"] = os.pathsep.join([str(tests), str(tests.parent), environment.get("PYTHONPATH", "")])
     result = subprocess.run(
-        [sys.executable, "-c", SCRIPT], env=environment, capture_output=True, text=True, timeout=600, check=False
+        [sys.executable, "-c", script], env=environment, capture_output=True, text=True, timeout=600, check=False
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    lines = dict(line.split(" ", 1) for line in result.stdout.strip().splitlines())
+    return dict(line.split(" ", 1) for line in result.stdout.strip().splitlines())
+
+
+def test_batched_rollout_sharded_over_four_cpu_devices_matches_one_device():
+    lines = run_script(SCRIPT, dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4"))
     assert lines["devices"] == "4"  # the output stays split over the four devices
     assert float(lines["max_difference"]) < 1e-5
     assert lines["finite"] == "True"
     assert lines["uneven"] == "True"  # a batch of 6 over 4 devices is refused with a clear error
+
+
+def test_trainers_split_their_envs_over_two_cpu_devices_and_learn_what_one_device_learns():
+    """PPO's iteration on two devices keeps its envs split there and updates the networks as on
+    one (the same random numbers: JAX's partitionable threefry); the evaluation's episodes split
+    too and return what one device returns; APG trains on both."""
+    lines = run_script(TRAINERS, dict(os.environ))
+    assert lines["devices"] == "2"
+    assert lines["split"] == "2 2"  # observations and physics stay split after three iterations
+    assert float(lines["ppo_params_difference"]) < 1e-5
+    assert float(lines["evaluation_difference"]) < 1e-4
+    assert lines["apg"] == "2 True"

@@ -9,6 +9,7 @@ gains (a paired t statistic above 3: the improvement is not evaluation noise).""
 
 import argparse
 import json
+import time
 
 import jax
 import jax.numpy as jnp
@@ -65,6 +66,23 @@ def test_cli_help_runs(module):
 def test_cli_without_a_budget_is_refused():
     with pytest.raises(SystemExit):
         ppo.main(["--env", "dbdjax/RagdollStand-v0"])
+
+
+def test_envs_split_over_the_most_devices_that_divide_them():
+    devices = ["cpu0", "cpu1", "cpu2", "cpu3"]  # env_devices only counts and slices them
+    assert rl.env_devices(64, devices) == devices
+    assert rl.env_devices(6, devices) == devices[:3]
+    assert rl.env_devices(7, devices) == devices[:1]
+    with pytest.raises(ValueError, match="no devices"):
+        rl.env_devices(4, [])
+
+
+def test_the_training_clock_leaves_out_the_evaluations():
+    clock = rl.Clock()
+    with clock.excluding():
+        time.sleep(0.5)
+    assert clock.excluded_wall >= 0.5
+    assert clock.wall() < 0.25
 
 
 def test_kl_adaptive_learning_rate_follows_the_rsl_rl_rule():

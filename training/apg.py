@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -186,11 +187,13 @@ def train(
     eval_episodes: int = 16,
     evaluate_initial: bool = False,
     progress: bool = True,
+    devices: Sequence[jax.Device] | None = None,
 ) -> Result:
     """Train a policy on `task` by analytic policy gradients for `updates` updates or until
-    `time_budget_s` wall seconds (compilation included) have passed, whichever comes first (at
+    `time_budget_s` wall seconds (compilation included, evaluations not) have passed, whichever comes first (at
     least one must be given). eval_every: a deterministic evaluation of `eval_episodes` episodes
-    every that many updates (0: only at the end). Returns a `Result`."""
+    every that many updates (0: only at the end). devices: the envs split over the most of these
+    (default: every local device) that divides num_envs (`rl.env_devices`). Returns a `Result`."""
     if updates is None and time_budget_s is None:
         raise ValueError("train: give updates or time_budget_s")
     if task.max_episode_steps is None:
@@ -206,12 +209,14 @@ def train(
         **rl.fresh_envs(task, config.num_envs, env_key),
         key=key,
     )
+    devices = rl.env_devices(config.num_envs, devices)
+    state = rl.distribute(state, ("env_state", "obs", "episode_return", "episode_length"), devices)
     result = rl.run(
         "apg", task, make_update(task, config, optimiser), state, export_params, clock,
         steps_per_iteration=config.num_envs * config.horizon, iterations=updates, time_budget_s=time_budget_s,
         seed=seed, eval_every=eval_every, eval_episodes=eval_episodes, evaluate_initial=evaluate_initial,
         progress=progress, bar_metric="reward_per_step", line=_line,
-        summary={"algorithm": "apg", "config": dataclasses.asdict(config)},
+        summary={"algorithm": "apg", "config": dataclasses.asdict(config), "devices": len(devices)},
     )  # fmt: skip
     result.summary["updates"] = len(result.history)
     result.summary["skipped_updates"] = int(sum(row["skipped"] for row in result.history))
@@ -244,6 +249,7 @@ def main(argv: list[str] | None = None) -> Result:
     args = parser.parse_args(argv)
     if args.updates is None and args.minutes is None:
         parser.error("give --updates or --minutes")
+    rl.use_cpu_devices(args.cpu_devices)  # before JAX computes anything
     config = APGConfig(num_envs=args.num_envs, horizon=args.horizon, learning_rate=args.lr, max_grad_norm=args.clip,
                        hidden=tuple(args.hidden), remat=not args.no_remat,
                        absorb_normaliser_updates=args.absorb_normaliser)  # fmt: skip

@@ -46,6 +46,7 @@ import argparse
 import dataclasses
 import functools
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -157,6 +158,11 @@ class TrainState(NamedTuple):
     previous_obs: jnp.ndarray  # (num_envs, obs_size) the observation the last action was taken in
     previous_action: jnp.ndarray  # (num_envs, A) the last action
     continuing: jnp.ndarray  # (num_envs,) bool: the last action belongs to the running episode
+
+
+# The TrainState fields with one row per env: split over the devices (`rl.distribute`).
+BATCH_FIELDS = ("env_state", "obs", "episode_return", "episode_length", "noise", "previous_obs", "previous_action",
+                "continuing")  # fmt: skip
 
 
 class Transition(NamedTuple):
@@ -471,14 +477,16 @@ def train(
     eval_episodes: int = 16,
     evaluate_initial: bool = False,
     progress: bool = True,
+    devices: Sequence[jax.Device] | None = None,
 ) -> Result:
     """Train a PPO policy on `task` (its max_episode_steps is the time limit; it must have one).
 
     Stops after `total_steps` env steps (rounded up to whole iterations) or once `time_budget_s`
-    wall-clock seconds (compilation included) have passed, whichever comes first; at least one
-    must be given. eval_every: run a deterministic evaluation of `eval_episodes` episodes every
-    that many iterations (0: only at the end). evaluate_initial: also evaluate the untrained
-    policy first (Result.initial_evaluation). Returns a `Result`.
+    wall-clock seconds (compilation included, evaluations not) have passed, whichever comes first;
+    at least one must be given. eval_every: run a deterministic evaluation of `eval_episodes`
+    episodes every that many iterations (0: only at the end). evaluate_initial: also evaluate the
+    untrained policy first (Result.initial_evaluation). devices: the envs split over the most of
+    these (default: every local device) that divides num_envs (`rl.env_devices`). Returns a `Result`.
     """
     if total_steps is None and time_budget_s is None:
         raise ValueError("train: give total_steps or time_budget_s")
@@ -489,7 +497,8 @@ def train(
     clock = rl.Clock()
     if not 0.0 <= config.noise_correlation < 1.0:
         raise ValueError(f"train: noise_correlation must be in [0, 1), got {config.noise_correlation!r}")
-    state = init_state(task, config, optimiser, seed)
+    devices = rl.env_devices(config.num_envs, devices)
+    state = rl.distribute(init_state(task, config, optimiser, seed), BATCH_FIELDS, devices)
 
     def failure(row: dict) -> str | None:
         finite = all(math.isfinite(row[name]) for name in ("policy_loss", "value_loss", "std"))
@@ -500,7 +509,7 @@ def train(
         steps_per_iteration=config.batch_size, iterations=iterations, time_budget_s=time_budget_s, seed=seed,
         eval_every=eval_every, eval_episodes=eval_episodes, evaluate_initial=evaluate_initial, progress=progress,
         bar_metric="episode_return", line=_line, failure=failure,
-        summary={"algorithm": "ppo", "config": dataclasses.asdict(config)},
+        summary={"algorithm": "ppo", "config": dataclasses.asdict(config), "devices": len(devices)},
     )  # fmt: skip
     result.summary["iterations"] = len(result.history)
     return result
@@ -558,6 +567,7 @@ def main(argv: list[str] | None = None) -> Result:
     args = parser.parse_args(argv)
     if args.steps is None and args.minutes is None:
         parser.error("give --steps or --minutes")
+    rl.use_cpu_devices(args.cpu_devices)  # before JAX computes anything
     config = PPOConfig(num_envs=args.num_envs, unroll_length=args.unroll, num_minibatches=args.minibatches,
                        update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma, entropy_coef=args.entropy,
                        init_log_std=args.init_log_std, reward_scale=args.reward_scale,
