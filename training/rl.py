@@ -14,7 +14,7 @@ the batch axis (`env_devices`, `distribute`; `dbdjax.sharding`): every env is in
 runs each device's share on its own, and the networks are replicated. On CPU the CLIs give JAX
 one device per core they may run on (`--cpu-devices`): XLA:CPU runs a small batched program on
 one thread, so a second core does nothing for one device. On this machine's two cores the PPO
-iteration of the README's runs took 1.2 s against 2.4 s on one (`README`: Reinforcement learning).
+iteration of the README's 30-minute runs took 1.2 s against 2.4 s on one (README: Many devices).
 
 Observation normalisation: running mean and variance over every observation seen in training
 (batched Welford/Chan update), the network sees (obs - mean) / (sqrt(var) + 0.01) clipped to +-10
