@@ -88,6 +88,9 @@ class TrainState(NamedTuple):
     key: jnp.ndarray
 
 
+# The TrainState fields with one row per env: split over the devices (`rl.distribute`).
+BATCH_FIELDS = ("env_state", "obs", "episode_return", "episode_length")
+
 Result = rl.Result
 
 
@@ -210,7 +213,7 @@ def train(
         key=key,
     )
     devices = rl.env_devices(config.num_envs, devices)
-    state = rl.distribute(state, ("env_state", "obs", "episode_return", "episode_length"), devices)
+    state = rl.distribute(state, BATCH_FIELDS, devices)
     result = rl.run(
         "apg", task, make_update(task, config, optimiser), state, export_params, clock,
         steps_per_iteration=config.num_envs * config.horizon, iterations=updates, time_budget_s=time_budget_s,
