@@ -88,9 +88,6 @@ class TrainState(NamedTuple):
     key: jnp.ndarray
 
 
-# The TrainState fields with one row per env: split over the devices (`rl.distribute`).
-BATCH_FIELDS = ("env_state", "obs", "episode_return", "episode_length")
-
 Result = rl.Result
 
 
@@ -193,10 +190,11 @@ def train(
     devices: Sequence[jax.Device] | None = None,
 ) -> Result:
     """Train a policy on `task` by analytic policy gradients for `updates` updates or until
-    `time_budget_s` wall seconds (compilation included, evaluations not) have passed, whichever comes first (at
-    least one must be given). eval_every: a deterministic evaluation of `eval_episodes` episodes
-    every that many updates (0: only at the end). devices: the envs split over the most of these
-    (default: every local device) that divides num_envs (`rl.env_devices`). Returns a `Result`."""
+    `time_budget_s` wall seconds (compilation included, evaluations not) have passed, whichever
+    comes first (at least one must be given). eval_every: a deterministic evaluation of
+    `eval_episodes` episodes every that many updates (0: only at the end). devices: the envs split
+    over the most of these (default: every local device) that divides num_envs (`rl.env_devices`).
+    Returns a `Result`."""
     if updates is None and time_budget_s is None:
         raise ValueError("train: give updates or time_budget_s")
     if task.max_episode_steps is None:
@@ -213,7 +211,7 @@ def train(
         key=key,
     )
     devices = rl.env_devices(config.num_envs, devices)
-    state = rl.distribute(state, BATCH_FIELDS, devices)
+    state = rl.distribute(state, rl.ENV_FIELDS, devices)  # the per-env fields are fresh_envs'
     result = rl.run(
         "apg", task, make_update(task, config, optimiser), state, export_params, clock,
         steps_per_iteration=config.num_envs * config.horizon, iterations=updates, time_budget_s=time_budget_s,

@@ -161,8 +161,7 @@ class TrainState(NamedTuple):
 
 
 # The TrainState fields with one row per env: split over the devices (`rl.distribute`).
-BATCH_FIELDS = ("env_state", "obs", "episode_return", "episode_length", "noise", "previous_obs", "previous_action",
-                "continuing")  # fmt: skip
+BATCH_FIELDS = (*rl.ENV_FIELDS, "noise", "previous_obs", "previous_action", "continuing")
 
 
 class Transition(NamedTuple):

@@ -266,6 +266,10 @@ def use_cpu_devices(count: int | None) -> int:
 # ----------------------------------------------------------------------------- the training loop
 
 
+# The per-env fields `fresh_envs` starts a trainer's state with (leading axis num_envs).
+ENV_FIELDS = ("env_state", "obs", "episode_return", "episode_length")
+
+
 def fresh_envs(task: DbdFuncEnv, num_envs: int, key: jax.Array) -> dict[str, Any]:
     """The fields both trainers' states start with: `num_envs` envs reset from `key` ("env_state",
     "obs"), no returns or lengths counted yet, and the placeholder observation statistics."""
@@ -548,13 +552,12 @@ def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
         values = np.array([row.get(key, np.nan) for row in history], float)
         noise = " (stochastic)" if summary.get("algorithm") == "ppo" else ""
         window = len(values) // 50  # a long run's per-iteration means are a few episodes each: smooth them
+        faint = {"alpha": 0.25, "linewidth": 0.6} if window > 1 else {}
+        ax.plot(steps, values, color="tab:blue", label=f"training episodes{noise}", **faint)
         if window > 1:
-            ax.plot(steps, values, color="tab:blue", alpha=0.25, linewidth=0.6, label=f"training episodes{noise}")
             ax.plot(
                 steps, _running_mean(values, window), color="tab:blue", label=f"the same, mean of {window} iterations"
             )
-        else:
-            ax.plot(steps, values, color="tab:blue", label=f"training episodes{noise}")
         evals = [(row["env_steps"], row[eval_key]) for row in history if eval_key in row]
         initial = summary.get("initial_evaluation")
         if initial:  # the untrained policy, at step 0
