@@ -10,6 +10,7 @@ gains (a paired t statistic above 3: the improvement is not evaluation noise).""
 import argparse
 import json
 import time
+import types
 
 import jax
 import jax.numpy as jnp
@@ -281,3 +282,43 @@ def test_apg_improves_the_return_on_ragdoll_stand(stand_long):
 
 PPO_STEPS = 64 * 16 * 100
 APG_UPDATES = 40
+
+
+def test_keep_best_chooses_on_validation_episodes_and_reports_on_the_others(monkeypatch):
+    """With keep_best the evaluations during training run the validation episodes, the policy kept
+    is the best there (not the best on the reported episodes), and it is reported on the reported
+    episodes beside the last policy."""
+    validation_scores = {1: 1.0, 2: 5.0, 3: 3.0, 4: 2.0}  # iteration -> validation mean return
+    seeds_used = []
+
+    def fake_evaluate(task, params, num_episodes, seed):
+        seeds_used.append(seed)
+        iteration = int(params["w"])
+        # On the reported episodes the order is reversed: a choice made there would pick iteration 1.
+        score = validation_scores[iteration] if seed != 8 else -validation_scores[iteration]
+        returns = np.full(num_episodes, score)
+        return {"returns": returns, "lengths": np.full(num_episodes, 10), "mean_return": score,
+                "mean_length": 10.0, "survival": 1.0}  # fmt: skip
+
+    monkeypatch.setattr(rl, "evaluate", fake_evaluate)
+    task = types.SimpleNamespace(max_episode_steps=10)
+
+    def train(keep_best):
+        seeds_used.clear()
+        return rl.run(
+            "test", task, lambda state: (state + 1, {"loss": 0.0}), 0, lambda state: {"w": np.array(state)},
+            rl.Clock(), steps_per_iteration=4, iterations=4, time_budget_s=None, seed=7, eval_every=1,
+            eval_episodes=3, evaluate_initial=False, progress=False, bar_metric="loss", line=str, keep_best=keep_best,
+        )  # fmt: skip
+
+    result = train(keep_best=True)
+    validation_seed = 8 + rl.VALIDATION_SEED_OFFSET
+    assert seeds_used == [validation_seed] * 4 + [8, 8]  # four validations, then the last and the kept reported
+    assert int(result.params["w"]) == 2 and result.summary["best_iteration"] == 2
+    assert result.evaluation["mean_return"] == -5.0 and result.summary["last_evaluation"]["mean_return"] == -2.0
+    assert [row["eval_mean_return"] for row in result.history] == [1.0, 5.0, 3.0, 2.0]
+    assert result.summary["validation_seed"] == validation_seed and result.summary["evaluation_seed"] == 8
+    rl.figure_history(result.history, result.summary)  # draws the kept policy's report
+
+    result = train(keep_best=False)  # as before: every evaluation on the reported episodes, the last policy kept
+    assert seeds_used == [8] * 5 and int(result.params["w"]) == 4 and result.summary["best_iteration"] == 4

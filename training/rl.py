@@ -49,6 +49,10 @@ from dbdjax.envs.core import DbdFuncEnv
 
 from . import checkpoint
 
+# The validation episodes (`run`'s keep_best) are those of the reported episodes' seed plus this:
+# far from any seed a run is given, so no run's validation episodes are another's reported ones.
+VALIDATION_SEED_OFFSET = 100_000
+
 # ----------------------------------------------------------------------------- networks
 
 
@@ -286,10 +290,11 @@ def fresh_envs(task: DbdFuncEnv, num_envs: int, key: jax.Array) -> dict[str, Any
 @dataclasses.dataclass
 class Result:
     """What `ppo.train` and `apg.train` return: params (numpy; the checkpoint's content, `act`
-    makes a policy of it), history (one dict per iteration: env_steps, wall_s, cpu_s, the
-    trainer's metrics, eval_* where an evaluation ran), evaluation (the final deterministic
-    `evaluate`), initial_evaluation (of the untrained policy, or None), summary (settings,
-    timings, machine; JSON-serialisable)."""
+    makes a policy of it: the last policy, or with keep_best the one chosen on the validation
+    episodes), history (one dict per iteration: env_steps, wall_s, cpu_s, the trainer's metrics,
+    eval_* where an evaluation ran: on the validation episodes with keep_best), evaluation (the
+    final deterministic `evaluate` of params, on the reported episodes), initial_evaluation (of the
+    untrained policy, or None), summary (settings, timings, machine; JSON-serialisable)."""
 
     params: dict
     history: list[dict]
@@ -317,20 +322,32 @@ def run(
     line: Callable[[dict], str],
     failure: Callable[[dict], str | None] = lambda row: None,
     summary: dict | None = None,
+    keep_best: bool = False,
 ) -> Result:
     """Run `iteration(state) -> (state, metrics)` (jitted by the caller) until `iterations` or
     `time_budget_s` wall seconds of `clock` (compilation included, evaluations not: the summary's
     `evaluation_wall_s` has them), logging one history row each,
     evaluating every `eval_every` iterations and at the end. failure(row): a reason to stop early,
     or None. summary: the trainer's own entries (algorithm, config, ...); timings, evaluations and
-    the machine are added here."""
+    the machine are added here.
+
+    The reported evaluation runs the episodes of seed + 1. keep_best: the evaluations every
+    `eval_every` iterations and of the last policy run other episodes instead, the validation
+    episodes of seed + 1 + `VALIDATION_SEED_OFFSET`, and the policy returned (and reported on
+    the seed + 1 episodes) is the one that did best on them; the summary keeps the last policy's
+    report too (`last_evaluation`). Choosing on the reported episodes themselves would flatter
+    the choice."""
     from .trajopt import _Progress
 
-    def evaluate_now(params):  # the clock stops: evaluations report on the training, not part of it
-        with clock.excluding():
-            return evaluate(task, params, num_episodes=eval_episodes, seed=seed + 1)
+    report_seed = seed + 1
+    validation_seed = report_seed + VALIDATION_SEED_OFFSET if keep_best else report_seed
 
-    initial_evaluation = evaluate_now(export_params(state)) if evaluate_initial else None
+    def evaluate_now(params, episodes_seed):  # the clock stops: evaluations report on the training
+        with clock.excluding():
+            return evaluate(task, params, num_episodes=eval_episodes, seed=episodes_seed)
+
+    initial_evaluation = evaluate_now(export_params(state), report_seed) if evaluate_initial else None
+    best = None  # keep_best: (validation mean return, iteration, params on the host)
     history: list[dict] = []
     bar = _Progress(iterations or 10**9, name, progress and iterations is not None)
     compile_s, index = None, 0
@@ -344,7 +361,11 @@ def run(
             row = {"iteration": index, "env_steps": index * steps_per_iteration, "wall_s": clock.wall(),
                    "cpu_s": clock.cpu(), **metrics}  # fmt: skip
             if eval_every and index % eval_every == 0:
-                row.update(_eval_entries(evaluate_now(export_params(state))))
+                params = export_params(state)
+                validation = evaluate_now(params, validation_seed)
+                row.update(_eval_entries(validation))
+                if keep_best and (best is None or validation["mean_return"] > best[0]):
+                    best = (validation["mean_return"], index, jax.tree.map(np.asarray, params))
             history.append(row)
             bar.update(metrics[bar_metric])
             if progress and iterations is None and (index == 1 or index % 10 == 0):
@@ -361,8 +382,20 @@ def run(
         bar.close()
     train_wall, train_cpu = clock.wall(), clock.cpu()
     params = export_params(state)
-    evaluation = evaluate_now(params)
-    history[-1].update(_eval_entries(evaluation))
+    last_evaluation = None
+    if keep_best:
+        if "eval_mean_return" not in history[-1]:  # the last policy competes too
+            validation = evaluate_now(params, validation_seed)
+            history[-1].update(_eval_entries(validation))
+            if best is None or validation["mean_return"] > best[0]:
+                best = (validation["mean_return"], index, jax.tree.map(np.asarray, params))
+        if best[1] != index:
+            last_evaluation = evaluate_now(params, report_seed)
+            params = best[2]
+    evaluation = evaluate_now(params, report_seed)
+    if not keep_best:
+        history[-1].update(_eval_entries(evaluation))
+    last_evaluation = last_evaluation or evaluation
 
     def scalars(result: dict) -> dict:
         return {key: value for key, value in result.items() if not isinstance(value, np.ndarray)}
@@ -374,6 +407,11 @@ def run(
                    load_average_at_start=clock.load_at_start, max_episode_steps=task.max_episode_steps,
                    evaluation=scalars(evaluation), evaluation_lengths=evaluation["lengths"].tolist(),
                    evaluation_returns=evaluation["returns"].tolist(),
+                   evaluation_seed=report_seed, keep_best=keep_best,
+                   validation_seed=validation_seed if keep_best else None,
+                   best_iteration=best[1] if keep_best else index,
+                   last_evaluation=scalars(last_evaluation),
+                   last_evaluation_returns=last_evaluation["returns"].tolist(),
                    initial_evaluation=None if initial_evaluation is None else scalars(initial_evaluation),
                    initial_evaluation_returns=None if initial_evaluation is None
                    else initial_evaluation["returns"].tolist(),
@@ -407,6 +445,10 @@ def add_common_arguments(parser, name: str, num_envs: int, learning_rate: float,
     parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N iterations (0: at the end)")
     parser.add_argument("--eval-episodes", type=int, default=16)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--keep-best", action="store_true",
+        help="evaluate every --eval-every iterations on validation episodes and keep the best policy there",
+    )  # fmt: skip
     parser.add_argument("--out", default=f"{name}_output", help="output folder")
     parser.add_argument("--name", default=None, help=f"file stem (default {name}_<env name in snake case>)")
     parser.add_argument("--no-progress", action="store_true")
@@ -560,10 +602,18 @@ def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
             )
         evals = [(row["env_steps"], row[eval_key]) for row in history if eval_key in row]
         initial = summary.get("initial_evaluation")
-        if initial:  # the untrained policy, at step 0
+        validated = summary.get("keep_best", False)  # then the evals ran other episodes than the report
+        if initial and not validated:  # the untrained policy, at step 0
             evals.insert(0, (0, initial[eval_key.removeprefix("eval_")]))
         if evals:
-            ax.plot(*np.array(evals).T, "o-", color="tab:red", label="evaluation (deterministic)")
+            where = " on the validation episodes" if validated else ""
+            ax.plot(*np.array(evals).T, "o-", color="tab:red", label=f"evaluation{where} (deterministic)")
+        if validated and summary.get("evaluation"):
+            entry = eval_key.removeprefix("eval_")
+            kept = steps[min(summary["best_iteration"], len(steps)) - 1]
+            reported = [(0, initial[entry])] if initial else []
+            ax.plot(*np.array(reported + [(kept, summary["evaluation"][entry])]).T, "*", color="black",
+                    markersize=10, label="untrained and kept policy, reported episodes")  # fmt: skip
         if key == "episode_length" and summary.get("max_episode_steps"):
             ax.axhline(summary["max_episode_steps"], color="0.5", linestyle="--", label="full episode")
         ax.set_xlabel("env steps")
