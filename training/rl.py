@@ -395,7 +395,8 @@ def run(
     evaluation = evaluate_now(params, report_seed)
     if not keep_best:
         history[-1].update(_eval_entries(evaluation))
-    last_evaluation = last_evaluation or evaluation
+    if last_evaluation is None:  # the kept policy is the last one
+        last_evaluation = evaluation
 
     def scalars(result: dict) -> dict:
         return {key: value for key, value in result.items() if not isinstance(value, np.ndarray)}
@@ -612,8 +613,9 @@ def figure_history(history: list[dict[str, float]], summary: dict[str, Any]):
             entry = eval_key.removeprefix("eval_")
             kept = steps[min(summary["best_iteration"], len(steps)) - 1]
             reported = [(0, initial[entry])] if initial else []
+            label = ("untrained and " if initial else "") + "kept policy, reported episodes"
             ax.plot(*np.array(reported + [(kept, summary["evaluation"][entry])]).T, "*", color="black",
-                    markersize=10, label="untrained and kept policy, reported episodes")  # fmt: skip
+                    markersize=10, label=label)  # fmt: skip
         if key == "episode_length" and summary.get("max_episode_steps"):
             ax.axhline(summary["max_episode_steps"], color="0.5", linestyle="--", label="full episode")
         ax.set_xlabel("env steps")
