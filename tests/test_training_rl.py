@@ -320,5 +320,8 @@ def test_keep_best_chooses_on_validation_episodes_and_reports_on_the_others(monk
     assert result.summary["validation_seed"] == validation_seed and result.summary["evaluation_seed"] == 8
     rl.figure_history(result.history, result.summary)  # draws the kept policy's report
 
-    result = train(keep_best=False)  # as before: every evaluation on the reported episodes, the last policy kept
-    assert seeds_used == [8] * 5 and int(result.params["w"]) == 4 and result.summary["best_iteration"] == 4
+    # Without keep_best every evaluation runs the reported episodes and the last policy is kept;
+    # iteration 4's evaluation is the final one (not run a second time).
+    result = train(keep_best=False)
+    assert seeds_used == [8] * 4 and int(result.params["w"]) == 4 and result.summary["best_iteration"] == 4
+    assert result.evaluation["mean_return"] == -2.0 and result.history[-1]["eval_mean_return"] == -2.0

@@ -342,12 +342,28 @@ def run(
     report_seed = seed + 1
     validation_seed = report_seed + VALIDATION_SEED_OFFSET if keep_best else report_seed
 
-    def evaluate_now(params, episodes_seed):  # the clock stops: evaluations report on the training
-        with clock.excluding():
-            return evaluate(task, params, num_episodes=eval_episodes, seed=episodes_seed)
-
-    initial_evaluation = evaluate_now(export_params(state), report_seed) if evaluate_initial else None
+    evaluations: dict[tuple[int, int], dict] = {}  # (iteration, episodes' seed) -> its evaluation
     best = None  # keep_best: (validation mean return, iteration, params on the host)
+
+    def evaluate_once(at: int, params, episodes_seed: int) -> dict:
+        """The evaluation of iteration `at`'s policy on the episodes of `episodes_seed`, run once
+        (the clock stops: evaluations report on the training, they are not part of it)."""
+        if (at, episodes_seed) not in evaluations:
+            with clock.excluding():
+                evaluations[at, episodes_seed] = evaluate(task, params, num_episodes=eval_episodes,
+                                                          seed=episodes_seed)  # fmt: skip
+        return evaluations[at, episodes_seed]
+
+    def validate(row: dict) -> None:
+        """Evaluate the current policy on the validation episodes into `row`; keep_best keeps it if best."""
+        nonlocal best
+        params = export_params(state)
+        validation = evaluate_once(index, params, validation_seed)
+        row.update(_eval_entries(validation))
+        if keep_best and (best is None or validation["mean_return"] > best[0]):
+            best = (validation["mean_return"], index, jax.tree.map(np.asarray, params))
+
+    initial_evaluation = evaluate_once(0, export_params(state), report_seed) if evaluate_initial else None
     history: list[dict] = []
     bar = _Progress(iterations or 10**9, name, progress and iterations is not None)
     compile_s, index = None, 0
@@ -361,11 +377,7 @@ def run(
             row = {"iteration": index, "env_steps": index * steps_per_iteration, "wall_s": clock.wall(),
                    "cpu_s": clock.cpu(), **metrics}  # fmt: skip
             if eval_every and index % eval_every == 0:
-                params = export_params(state)
-                validation = evaluate_now(params, validation_seed)
-                row.update(_eval_entries(validation))
-                if keep_best and (best is None or validation["mean_return"] > best[0]):
-                    best = (validation["mean_return"], index, jax.tree.map(np.asarray, params))
+                validate(row)
             history.append(row)
             bar.update(metrics[bar_metric])
             if progress and iterations is None and (index == 1 or index % 10 == 0):
@@ -381,22 +393,13 @@ def run(
     finally:
         bar.close()
     train_wall, train_cpu = clock.wall(), clock.cpu()
-    params = export_params(state)
-    last_evaluation = None
-    if keep_best:
-        if "eval_mean_return" not in history[-1]:  # the last policy competes too
-            validation = evaluate_now(params, validation_seed)
-            history[-1].update(_eval_entries(validation))
-            if best is None or validation["mean_return"] > best[0]:
-                best = (validation["mean_return"], index, jax.tree.map(np.asarray, params))
-        if best[1] != index:
-            last_evaluation = evaluate_now(params, report_seed)
-            params = best[2]
-    evaluation = evaluate_now(params, report_seed)
+    if keep_best and "eval_mean_return" not in history[-1]:  # the last policy competes too
+        validate(history[-1])
+    last_evaluation = evaluate_once(index, export_params(state), report_seed)  # run already if eval_every hit it
+    kept, params = (best[1], best[2]) if keep_best else (index, export_params(state))
+    evaluation = evaluate_once(kept, params, report_seed)
     if not keep_best:
         history[-1].update(_eval_entries(evaluation))
-    if last_evaluation is None:  # the kept policy is the last one
-        last_evaluation = evaluation
 
     def scalars(result: dict) -> dict:
         return {key: value for key, value in result.items() if not isinstance(value, np.ndarray)}
@@ -410,7 +413,7 @@ def run(
                    evaluation_returns=evaluation["returns"].tolist(),
                    evaluation_seed=report_seed, keep_best=keep_best,
                    validation_seed=validation_seed if keep_best else None,
-                   best_iteration=best[1] if keep_best else index,
+                   best_iteration=kept,
                    last_evaluation=scalars(last_evaluation),
                    last_evaluation_returns=last_evaluation["returns"].tolist(),
                    initial_evaluation=None if initial_evaluation is None else scalars(initial_evaluation),
