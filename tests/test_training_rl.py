@@ -201,6 +201,26 @@ def test_untrained_policy_acts_the_home_pose(stand):
     np.testing.assert_array_equal(np.asarray(action), np.broadcast_to(np.asarray(home), action.shape))
 
 
+def test_initial_log_std_is_set_per_action_entry_and_bad_entries_are_refused(stand):
+    config = ppo.PPOConfig(init_log_std=-4.6, init_log_std_of=((17, -6.2), (22, -6.0)))
+    log_std = np.asarray(ppo.init_params(stand, config, jax.random.PRNGKey(0))["log_std"])
+    assert log_std[17] == np.float32(-6.2) and log_std[22] == np.float32(-6.0)
+    assert np.all(np.delete(log_std, [17, 22]) == np.float32(-4.6))
+    with pytest.raises(ValueError, match=r"init_log_std_of.*\[26\] outside 0\.\.25"):
+        ppo.init_params(stand, ppo.PPOConfig(init_log_std_of=((26, -6.0),)), jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="explored_actions.*repeated"):
+        ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(20, 20)))
+    with pytest.raises(ValueError, match=r"explored_actions.*\[-1\] outside"):
+        ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(-1, 25)))
+
+
+def test_cli_reads_per_entry_log_std_and_refuses_a_malformed_one():
+    assert ppo._entry_value("17=-6.2") == (17, -6.2)
+    for text in ("17", "x=1", "17=y"):
+        with pytest.raises(argparse.ArgumentTypeError, match="INDEX=VALUE"):
+            ppo._entry_value(text)
+
+
 @pytest.mark.parametrize("algorithm", ["ppo", "apg"])
 def test_checkpoint_round_trips_and_the_loaded_policy_acts_the_same(stand, tmp_path, algorithm):
     key = jax.random.PRNGKey(2)

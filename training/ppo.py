@@ -107,6 +107,10 @@ class PPOConfig:
     episodes of the home pose from 128 to 82 steps (no full episode of 32), the same noise on
     the two ankles to 112: exploring everywhere, PPO learns from a policy far worse than the
     deterministic one it is evaluated as.
+    init_log_std_of: ((index, log std), ...) action entries whose initial log std is not
+    `init_log_std`: noise in each drive's own measure (a std of 0.01 is 0.016 rad at a hip, whose
+    drive is 10000 N m/rad, and 0.008 rad at an ankle, 8000 N m/rad), or a gentler start for the
+    entries a policy leans on least. Only the start: log_std is learnt per entry as before.
     absorb_normaliser_updates: after each update of the observation statistics, change the first
     layers of both networks so that they compute what they computed before it
     (`rl.absorb_normaliser_update`): the statistics then only condition the learning and never
@@ -135,6 +139,7 @@ class PPOConfig:
     desired_kl: float | None = 0.01
     noise_correlation: float = 0.0
     explored_actions: tuple[int, ...] | None = None
+    init_log_std_of: tuple[tuple[int, float], ...] = ()
     absorb_normaliser_updates: bool = True
 
     @property
@@ -191,8 +196,27 @@ def init_params(task: DbdFuncEnv, config: PPOConfig, key: jax.Array) -> dict:
     return {
         "policy": rl.init_mlp(policy_key, (*sizes, task.action_size), last_scale=0.0),
         "value": rl.init_mlp(value_key, (*sizes, 1), last_scale=1.0),
-        "log_std": jnp.full((task.action_size,), config.init_log_std, jnp.float32),
+        "log_std": initial_log_std(task, config),
     }
+
+
+def _checked_entries(task: DbdFuncEnv, field: str, indices) -> np.ndarray:
+    """indices as an int array, or a ValueError naming `field` when one is not an action entry."""
+    indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+    bad = [int(i) for i in indices if not 0 <= i < task.action_size]
+    if bad or len(set(indices.tolist())) < len(indices):
+        reason = f"{bad} outside 0..{task.action_size - 1}" if bad else "a repeated index"
+        raise ValueError(f"PPOConfig.{field}: action entries {indices.tolist()} hold {reason}")
+    return indices
+
+
+def initial_log_std(task: DbdFuncEnv, config: PPOConfig) -> jnp.ndarray:
+    """(A,) float32: `init_log_std` everywhere but the entries of `init_log_std_of`."""
+    log_std = np.full((task.action_size,), config.init_log_std, np.float32)
+    if config.init_log_std_of:
+        entries, values = zip(*config.init_log_std_of, strict=True)
+        log_std[_checked_entries(task, "init_log_std_of", entries)] = values
+    return jnp.asarray(log_std)
 
 
 def _innovation_log_std(log_std, rho):
@@ -211,7 +235,8 @@ def explored_mask(task: DbdFuncEnv, config: PPOConfig) -> jnp.ndarray:
     """(A,) float32: 1.0 on the action entries that explore (`PPOConfig.explored_actions`), 0.0 elsewhere."""
     if config.explored_actions is None:
         return jnp.ones((task.action_size,), jnp.float32)
-    return jnp.zeros((task.action_size,), jnp.float32).at[jnp.asarray(config.explored_actions)].set(1.0)
+    entries = _checked_entries(task, "explored_actions", config.explored_actions)
+    return jnp.zeros((task.action_size,), jnp.float32).at[entries].set(1.0)
 
 
 def _adapt_learning_rate(opt_state, approx_kl, desired_kl):
@@ -529,6 +554,17 @@ def load(path: str | Path) -> tuple[dict, dict]:
     return checkpoint.load(path)
 
 
+def _entry_value(text: str) -> tuple[int, float]:
+    """'17=-6.2' -> (17, -6.2), for argparse."""
+    index, sep, value = text.partition("=")
+    try:
+        if not sep:
+            raise ValueError
+        return int(index), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected INDEX=VALUE (an int and a float), got {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> Result:
     defaults = PPOConfig()
     parser = argparse.ArgumentParser(
@@ -543,8 +579,13 @@ def main(argv: list[str] | None = None) -> Result:
     parser.add_argument("--minibatches", type=int, default=defaults.num_minibatches)
     parser.add_argument("--epochs", type=int, default=defaults.update_epochs)
     parser.add_argument("--gamma", type=float, default=defaults.gamma)
+    parser.add_argument("--gae-lambda", type=float, default=defaults.gae_lambda, help="GAE's lambda")
     parser.add_argument("--entropy", type=float, default=defaults.entropy_coef)
     parser.add_argument("--init-log-std", type=float, default=defaults.init_log_std)
+    parser.add_argument(
+        "--init-log-std-of", nargs="+", default=[], metavar="INDEX=LOG_STD", type=_entry_value,
+        help="action entries whose initial log std is not --init-log-std, e.g. 17=-6.2 22=-6.2",
+    )  # fmt: skip
     parser.add_argument("--reward-scale", type=float, default=defaults.reward_scale)
     parser.add_argument(
         "--noise-correlation", type=float, default=defaults.noise_correlation,
@@ -558,7 +599,7 @@ def main(argv: list[str] | None = None) -> Result:
         "--desired-kl",
         type=float,
         default=defaults.desired_kl,
-        help="KL-adaptive learning rate (rsl_rl's rule; default: fixed rate)",
+        help=f"the KL-adaptive learning rate's target KL per update (rsl_rl's rule; default {defaults.desired_kl})",
     )
     parser.add_argument("--no-normalise", action="store_true", help="feed the networks the raw observations")
     parser.add_argument(
@@ -570,8 +611,10 @@ def main(argv: list[str] | None = None) -> Result:
         parser.error("give --steps or --minutes")
     rl.use_cpu_devices(args.cpu_devices)  # before JAX computes anything
     config = PPOConfig(num_envs=args.num_envs, unroll_length=args.unroll, num_minibatches=args.minibatches,
-                       update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma, entropy_coef=args.entropy,
-                       init_log_std=args.init_log_std, reward_scale=args.reward_scale,
+                       update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma,
+                       gae_lambda=args.gae_lambda, entropy_coef=args.entropy,
+                       init_log_std=args.init_log_std, init_log_std_of=tuple(args.init_log_std_of),
+                       reward_scale=args.reward_scale,
                        desired_kl=args.desired_kl, noise_correlation=args.noise_correlation,
                        explored_actions=None if args.explored_actions is None else tuple(args.explored_actions),
                        normalise_observations=not args.no_normalise,
