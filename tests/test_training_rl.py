@@ -206,11 +206,11 @@ def test_initial_log_std_is_set_per_action_entry_and_bad_entries_are_refused(sta
     log_std = np.asarray(ppo.init_params(stand, config, jax.random.PRNGKey(0))["log_std"])
     assert log_std[17] == np.float32(-6.2) and log_std[22] == np.float32(-6.0)
     assert np.all(np.delete(log_std, [17, 22]) == np.float32(-4.6))
-    with pytest.raises(ValueError, match=r"init_log_std_of.*\[26\] outside 0\.\.25"):
+    with pytest.raises(ValueError, match=r"init_log_std_of: 26 is not an action entry \(0\.\.25\)"):
         ppo.init_params(stand, ppo.PPOConfig(init_log_std_of=((26, -6.0),)), jax.random.PRNGKey(0))
-    with pytest.raises(ValueError, match="explored_actions.*repeated"):
+    with pytest.raises(ValueError, match="explored_actions: action entry 20 is given twice"):
         ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(20, 20)))
-    with pytest.raises(ValueError, match=r"explored_actions.*\[-1\] outside"):
+    with pytest.raises(ValueError, match="explored_actions: -1 is not an action entry"):
         ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(-1, 25)))
 
 

@@ -203,10 +203,11 @@ def init_params(task: DbdFuncEnv, config: PPOConfig, key: jax.Array) -> dict:
 def _checked_entries(task: DbdFuncEnv, field: str, indices) -> np.ndarray:
     """indices as an int array, or a ValueError naming `field` when one is not an action entry."""
     indices = np.asarray(indices, dtype=np.int64).reshape(-1)
-    bad = [int(i) for i in indices if not 0 <= i < task.action_size]
-    if bad or len(set(indices.tolist())) < len(indices):
-        reason = f"{bad} outside 0..{task.action_size - 1}" if bad else "a repeated index"
-        raise ValueError(f"PPOConfig.{field}: action entries {indices.tolist()} hold {reason}")
+    for position, index in enumerate(indices.tolist()):
+        if not 0 <= index < task.action_size:
+            raise ValueError(f"PPOConfig.{field}: {index} is not an action entry (0..{task.action_size - 1})")
+        if index in indices[:position]:
+            raise ValueError(f"PPOConfig.{field}: action entry {index} is given twice")
     return indices
 
 
@@ -556,12 +557,10 @@ def load(path: str | Path) -> tuple[dict, dict]:
 
 def _entry_value(text: str) -> tuple[int, float]:
     """'17=-6.2' -> (17, -6.2), for argparse."""
-    index, sep, value = text.partition("=")
+    index, _, value = text.partition("=")
     try:
-        if not sep:
-            raise ValueError
         return int(index), float(value)
-    except ValueError:
+    except ValueError:  # also a missing "=" (value "")
         raise argparse.ArgumentTypeError(f"expected INDEX=VALUE (an int and a float), got {text!r}") from None
 
 
@@ -599,7 +598,8 @@ def main(argv: list[str] | None = None) -> Result:
         "--desired-kl",
         type=float,
         default=defaults.desired_kl,
-        help=f"the KL-adaptive learning rate's target KL per update (rsl_rl's rule; default {defaults.desired_kl})",
+        help=f"the KL-adaptive learning rate's target KL from the rollout policy (rsl_rl's rule; default "
+        f"{defaults.desired_kl})",
     )
     parser.add_argument("--no-normalise", action="store_true", help="feed the networks the raw observations")
     parser.add_argument(
