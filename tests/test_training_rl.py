@@ -212,6 +212,8 @@ def test_initial_log_std_is_set_per_action_entry_and_bad_entries_are_refused(sta
         ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(20, 20)))
     with pytest.raises(ValueError, match="explored_actions: -1 is not an action entry"):
         ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(-1, 25)))
+    with pytest.raises(ValueError, match=r"explored_actions: 20\.5 is not an action entry"):
+        ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(20.5, 25)))
 
 
 def test_cli_reads_per_entry_log_std_and_refuses_a_malformed_one():

@@ -201,14 +201,16 @@ def init_params(task: DbdFuncEnv, config: PPOConfig, key: jax.Array) -> dict:
 
 
 def _checked_entries(task: DbdFuncEnv, field: str, indices) -> np.ndarray:
-    """indices as an int array, or a ValueError naming `field` when one is not an action entry."""
-    indices = np.asarray(indices, dtype=np.int64).reshape(-1)
-    for position, index in enumerate(indices.tolist()):
-        if not 0 <= index < task.action_size:
-            raise ValueError(f"PPOConfig.{field}: {index} is not an action entry (0..{task.action_size - 1})")
-        if index in indices[:position]:
+    """indices as an int array, or a ValueError naming `field` when one is not an action entry
+    (an integer in 0..A-1: a float is not truncated, a negative index does not wrap) or repeats."""
+    checked: list[int] = []
+    for index in indices:
+        if not isinstance(index, int | np.integer) or not 0 <= index < task.action_size:
+            raise ValueError(f"PPOConfig.{field}: {index!r} is not an action entry (0..{task.action_size - 1})")
+        if index in checked:
             raise ValueError(f"PPOConfig.{field}: action entry {index} is given twice")
-    return indices
+        checked.append(int(index))
+    return np.asarray(checked, np.int64)
 
 
 def initial_log_std(task: DbdFuncEnv, config: PPOConfig) -> jnp.ndarray:

@@ -354,14 +354,14 @@ def run(
                                                           seed=episodes_seed)  # fmt: skip
         return evaluations[at, episodes_seed]
 
-    def validate(row: dict) -> None:
-        """Evaluate the current policy on the validation episodes into `row`; keep_best keeps it if best."""
+    def validate(row: dict, at: int, params) -> None:
+        """Evaluate iteration `at`'s policy on the validation episodes into `row`; keep_best keeps
+        it if it is the best so far."""
         nonlocal best
-        params = export_params(state)
-        validation = evaluate_once(index, params, validation_seed)
+        validation = evaluate_once(at, params, validation_seed)
         row.update(_eval_entries(validation))
         if keep_best and (best is None or validation["mean_return"] > best[0]):
-            best = (validation["mean_return"], index, jax.tree.map(np.asarray, params))
+            best = (validation["mean_return"], at, jax.tree.map(np.asarray, params))
 
     initial_evaluation = evaluate_once(0, export_params(state), report_seed) if evaluate_initial else None
     history: list[dict] = []
@@ -377,7 +377,7 @@ def run(
             row = {"iteration": index, "env_steps": index * steps_per_iteration, "wall_s": clock.wall(),
                    "cpu_s": clock.cpu(), **metrics}  # fmt: skip
             if eval_every and index % eval_every == 0:
-                validate(row)
+                validate(row, index, export_params(state))
             history.append(row)
             bar.update(metrics[bar_metric])
             if progress and iterations is None and (index == 1 or index % 10 == 0):
@@ -394,7 +394,7 @@ def run(
         bar.close()
     train_wall, train_cpu = clock.wall(), clock.cpu()
     if keep_best and "eval_mean_return" not in history[-1]:  # the last policy competes too
-        validate(history[-1])
+        validate(history[-1], index, export_params(state))
     last_evaluation = evaluate_once(index, export_params(state), report_seed)  # run already if eval_every hit it
     kept, params = (best[1], best[2]) if keep_best else (index, export_params(state))
     evaluation = evaluate_once(kept, params, report_seed)
