@@ -216,6 +216,28 @@ def test_initial_log_std_is_set_per_action_entry_and_bad_entries_are_refused(sta
         ppo.explored_mask(stand, ppo.PPOConfig(explored_actions=(20.5, 25)))
 
 
+def test_step_scale_of_scales_only_the_named_policy_outputs_updates(stand):
+    config = ppo.PPOConfig(hidden=(8,), desired_kl=0.01, step_scale_of=((16, 0.2), (22, 0.5)))
+    params = ppo.init_params(stand, config, jax.random.PRNGKey(0))
+    grads = jax.tree.map(lambda x: jnp.asarray(np.random.default_rng(1).normal(size=x.shape), x.dtype), params)
+    plain = ppo.make_optimiser(config, None)
+    scaled = ppo.make_optimiser(config, None, ppo.output_step_scale(stand, config))
+    expected, _ = plain.update(grads, plain.init(params), params)
+    got, _ = scaled.update(grads, scaled.init(params), params)
+    factor = np.ones(stand.action_size, np.float32)
+    factor[16], factor[22] = 0.2, 0.5
+    np.testing.assert_allclose(got["policy"][-1]["w"], expected["policy"][-1]["w"] * factor, rtol=1e-6)
+    np.testing.assert_allclose(got["policy"][-1]["b"], expected["policy"][-1]["b"] * factor, rtol=1e-6)
+    for name in ("value", "log_std"):  # the value network, the stds and the hidden layers step as before
+        for a, b in zip(jax.tree.leaves(got[name]), jax.tree.leaves(expected[name]), strict=True):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(got["policy"][0]["w"], expected["policy"][0]["w"])
+    with pytest.raises(ValueError, match=r"step_scale_of: 26 is not an action entry"):
+        ppo.output_step_scale(stand, ppo.PPOConfig(step_scale_of=((26, 0.2),)))
+    with pytest.raises(ValueError, match="step_scale_of: action entry 16's scale 0.0 is not positive"):
+        ppo.output_step_scale(stand, ppo.PPOConfig(step_scale_of=((16, 0.0),)))
+
+
 def test_cli_reads_per_entry_log_std_and_refuses_a_malformed_one():
     assert ppo._entry_value("17=-6.2") == (17, -6.2)
     for text in ("17", "x=1", "17=y"):

@@ -111,6 +111,15 @@ class PPOConfig:
     `init_log_std`: noise in each drive's own measure (a std of 0.01 is 0.016 rad at a hip, whose
     drive is 10000 N m/rad, and 0.008 rad at an ankle, 8000 N m/rad), or a gentler start for the
     entries a policy leans on least. Only the start: log_std is learnt per entry as before.
+    step_scale_of: ((index, scale), ...) action entries whose mean learns at `scale` times the
+    step of the others: Adam's updates of the policy's last layer for that output (its weights and
+    bias) are multiplied by `scale`. Adam moves every weight by about the rate whatever its
+    gradient, so an entry explored at a fifth of the others' std moves its mean as far per step
+    as they do, five of its own stds. With the hips' roll and pitch at std 0.002 and the ankles at
+    0.01 the training return fell from the untrained 120 to about 50 for nine minutes (README):
+    the hips' mean moving did it (their noise with their step scaled by 1e-6 did not: the return
+    rose as with the ankles alone); at a scale of 0.2 it still fell, at 0.05 it fell for about 50
+    iterations (README: "What collapsed the hips' runs").
     absorb_normaliser_updates: after each update of the observation statistics, change the first
     layers of both networks so that they compute what they computed before it
     (`rl.absorb_normaliser_update`): the statistics then only condition the learning and never
@@ -140,6 +149,7 @@ class PPOConfig:
     noise_correlation: float = 0.0
     explored_actions: tuple[int, ...] | None = None
     init_log_std_of: tuple[tuple[int, float], ...] = ()
+    step_scale_of: tuple[tuple[int, float], ...] = ()
     absorb_normaliser_updates: bool = True
 
     @property
@@ -213,13 +223,37 @@ def _checked_entries(task: DbdFuncEnv, field: str, indices) -> np.ndarray:
     return np.asarray(checked, np.int64)
 
 
+def _per_entry(task: DbdFuncEnv, field: str, default: float, pairs) -> jnp.ndarray:
+    """(A,) float32: `default` everywhere but the (index, value) pairs of PPOConfig.`field`."""
+    values = np.full((task.action_size,), default, np.float32)
+    if pairs:
+        entries, given = zip(*pairs, strict=True)
+        values[_checked_entries(task, field, entries)] = given
+    return jnp.asarray(values)
+
+
 def initial_log_std(task: DbdFuncEnv, config: PPOConfig) -> jnp.ndarray:
     """(A,) float32: `init_log_std` everywhere but the entries of `init_log_std_of`."""
-    log_std = np.full((task.action_size,), config.init_log_std, np.float32)
-    if config.init_log_std_of:
-        entries, values = zip(*config.init_log_std_of, strict=True)
-        log_std[_checked_entries(task, "init_log_std_of", entries)] = values
-    return jnp.asarray(log_std)
+    return _per_entry(task, "init_log_std_of", config.init_log_std, config.init_log_std_of)
+
+
+def output_step_scale(task: DbdFuncEnv, config: PPOConfig) -> jnp.ndarray:
+    """(A,) float32: 1 everywhere but the entries of `step_scale_of` (each scale positive)."""
+    for index, scale in config.step_scale_of:
+        if not scale > 0.0:
+            raise ValueError(f"PPOConfig.step_scale_of: action entry {index}'s scale {scale!r} is not positive")
+    return _per_entry(task, "step_scale_of", 1.0, config.step_scale_of)
+
+
+def scale_policy_output_steps(scale: jnp.ndarray) -> optax.GradientTransformation:
+    """Multiplies the updates of the policy's last layer (weights (H, A) and bias (A,)) by scale (A,)
+    per output entry; every other update passes unchanged."""
+
+    def scale_updates(updates: dict, params=None) -> dict:
+        last = updates["policy"][-1]
+        return {**updates, "policy": [*updates["policy"][:-1], {"w": last["w"] * scale, "b": last["b"] * scale}]}
+
+    return optax.stateless(scale_updates)
 
 
 def _innovation_log_std(log_std, rho):
@@ -252,12 +286,17 @@ def _adapt_learning_rate(opt_state, approx_kl, desired_kl):
     return (opt_state[0], adam._replace(hyperparams={**adam.hyperparams, "learning_rate": rate}), *opt_state[2:])
 
 
-def make_optimiser(config: PPOConfig, iterations: int | None) -> optax.GradientTransformation:
+def make_optimiser(
+    config: PPOConfig, iterations: int | None, step_scale: jnp.ndarray | None = None
+) -> optax.GradientTransformation:
     """Global-norm clipping then Adam: a fixed rate (linearly decayed to 10% over `iterations` when
-    known) or, with `config.desired_kl`, the KL-adaptive rate (held in the optimiser state)."""
+    known) or, with `config.desired_kl`, the KL-adaptive rate (held in the optimiser state); then
+    the policy output's updates scaled per entry by step_scale (A,) (`output_step_scale`) if given."""
     clip = optax.clip_by_global_norm(config.max_grad_norm)
+    scaled = () if step_scale is None else (scale_policy_output_steps(step_scale),)
     if config.desired_kl is not None:
-        return optax.chain(clip, optax.inject_hyperparams(optax.adam)(learning_rate=config.learning_rate, eps=1e-5))
+        adam = optax.inject_hyperparams(optax.adam)(learning_rate=config.learning_rate, eps=1e-5)
+        return optax.chain(clip, adam, *scaled)
     rate = (
         config.learning_rate
         if iterations is None
@@ -265,7 +304,7 @@ def make_optimiser(config: PPOConfig, iterations: int | None) -> optax.GradientT
             config.learning_rate, 0.1 * config.learning_rate, iterations * config.update_epochs * config.num_minibatches
         )
     )
-    return optax.chain(clip, optax.adam(rate, eps=1e-5))
+    return optax.chain(clip, optax.adam(rate, eps=1e-5), *scaled)
 
 
 def policy_and_value(task: DbdFuncEnv, params: dict, stats: rl.Normaliser, obs: jnp.ndarray):
@@ -522,7 +561,7 @@ def train(
     if task.max_episode_steps is None:
         raise ValueError("train: the task needs max_episode_steps (the time limit PPO bootstraps at)")
     iterations = None if total_steps is None else max(1, -(-total_steps // config.batch_size))
-    optimiser = make_optimiser(config, iterations)
+    optimiser = make_optimiser(config, iterations, output_step_scale(task, config) if config.step_scale_of else None)
     clock = rl.Clock()
     if not 0.0 <= config.noise_correlation < 1.0:
         raise ValueError(f"train: noise_correlation must be in [0, 1), got {config.noise_correlation!r}")
@@ -587,6 +626,10 @@ def main(argv: list[str] | None = None) -> Result:
         "--init-log-std-of", nargs="+", default=[], metavar="INDEX=LOG_STD", type=_entry_value,
         help="action entries whose initial log std is not --init-log-std, e.g. 17=-6.2 22=-6.2",
     )  # fmt: skip
+    parser.add_argument(
+        "--step-scale-of", nargs="+", default=[], metavar="INDEX=SCALE", type=_entry_value,
+        help="action entries whose mean learns at SCALE times the others' step, e.g. 17=0.2 22=0.2",
+    )  # fmt: skip
     parser.add_argument("--reward-scale", type=float, default=defaults.reward_scale)
     parser.add_argument(
         "--noise-correlation", type=float, default=defaults.noise_correlation,
@@ -616,6 +659,7 @@ def main(argv: list[str] | None = None) -> Result:
                        update_epochs=args.epochs, learning_rate=args.lr, gamma=args.gamma,
                        gae_lambda=args.gae_lambda, entropy_coef=args.entropy,
                        init_log_std=args.init_log_std, init_log_std_of=tuple(args.init_log_std_of),
+                       step_scale_of=tuple(args.step_scale_of),
                        reward_scale=args.reward_scale,
                        desired_kl=args.desired_kl, noise_correlation=args.noise_correlation,
                        explored_actions=None if args.explored_actions is None else tuple(args.explored_actions),
