@@ -234,8 +234,9 @@ def test_step_scale_of_scales_only_the_named_policy_outputs_updates(stand):
     np.testing.assert_array_equal(got["policy"][0]["w"], expected["policy"][0]["w"])
     with pytest.raises(ValueError, match=r"step_scale_of: 26 is not an action entry"):
         ppo.output_step_scale(stand, ppo.PPOConfig(step_scale_of=((26, 0.2),)))
-    with pytest.raises(ValueError, match="step_scale_of: action entry 16's scale 0.0 is not positive"):
-        ppo.output_step_scale(stand, ppo.PPOConfig(step_scale_of=((16, 0.0),)))
+    for bad in (0.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=f"step_scale_of: entry 16's scale {bad!r} is not positive and finite"):
+            ppo.output_step_scale(stand, ppo.PPOConfig(step_scale_of=((16, bad),)))
 
 
 def test_cli_reads_per_entry_log_std_and_refuses_a_malformed_one():

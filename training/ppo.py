@@ -240,8 +240,8 @@ def initial_log_std(task: DbdFuncEnv, config: PPOConfig) -> jnp.ndarray:
 def output_step_scale(task: DbdFuncEnv, config: PPOConfig) -> jnp.ndarray:
     """(A,) float32: 1 everywhere but the entries of `step_scale_of` (each scale positive)."""
     for index, scale in config.step_scale_of:
-        if not scale > 0.0:
-            raise ValueError(f"PPOConfig.step_scale_of: action entry {index}'s scale {scale!r} is not positive")
+        if not (math.isfinite(scale) and scale > 0.0):  # a NaN or inf scale would make every step non-finite
+            raise ValueError(f"PPOConfig.step_scale_of: entry {index}'s scale {scale!r} is not positive and finite")
     return _per_entry(task, "step_scale_of", 1.0, config.step_scale_of)
 
 
