@@ -16,9 +16,15 @@ the build pose (action 0, every drive holding the standing pose) and the capture
    several substeps x iterations: where the ankles end and whether the doll stands (at 2 x 8 the
    ankles sag to -0.1 rad and it falls: README, "The solver budget sets the ankles' stiffness").
 6. Ramped ankle leans under the env's pushes, 48 episodes of 300 steps, at two budgets.
+7. The feet-in-place bound under the env's own push sequences: the capture point of the linear
+   inverted pendulum driven back to the middle of the support as fast as a centre of pressure
+   anywhere on the feet allows (the ideal ankle strategy), kicked by each episode's pushes (the
+   same episodes as `rl.evaluate`'s for a seed). The episodes it cannot keep up are lost to any
+   policy that keeps the feet in place and does not swing the upper body.
 
     python benchmarks/ragdoll_push_recovery.py [--out benchmarks/results/ragdoll_push_recovery.json]
     python benchmarks/ragdoll_push_recovery.py --only budgets ramped   # sections 5 and 6 alone
+    python benchmarks/ragdoll_push_recovery.py --only capture --compare benchmarks/results/ppo_*.json
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import dbdjax as dbd
-from dbdjax import ragdoll
+from dbdjax import math, ragdoll
 from dbdjax.envs import RagdollStand
 from dbdjax.envs.core import yaw_rotate_inverse
 
@@ -205,17 +211,182 @@ def solver_budgets(budgets, ankle_action: float = -0.045) -> list[dict]:
     return rows
 
 
+def episode_kicks(task: RagdollStand, episodes: int, seed: int, steps: int) -> np.ndarray:
+    """(episodes, steps, 2) m/s: the torso kick of every step of the episodes `rl.evaluate(task, ...,
+    episodes, seed)` runs (the same keys), in the doll's starting heading frame (x forward, y
+    left). The kicks come from the key chain alone, so they are the pushes of those episodes
+    whatever the policy does (past a fall too); the doll's heading is taken as the one it starts
+    with (it turns little while it stands)."""
+
+    @jax.jit
+    def run(keys):
+        def one(key):
+            state, _, _ = task.reset(key)
+
+            def body(key, _):
+                key, step_key = jax.random.split(key)
+                return key, task.kick(step_key)
+
+            _, kicks = jax.lax.scan(body, state.key, None, length=steps)
+            return yaw_rotate_inverse(task.heading(state.physics), kicks)[:, :2]
+
+        return jax.vmap(one)(keys)
+
+    return np.asarray(run(jax.random.split(jax.random.PRNGKey(seed), episodes)), np.float64)
+
+
+def pendulum_models(task: RagdollStand) -> dict:
+    """The two inverted pendulums of the standing doll (all joints held) on the support of its feet.
+
+    Each has a capture point xi = x + v / omega (x, v: the COM's horizontal offset and velocity)
+    with d xi / dt = omega (xi - p), p the centre of pressure, and a torso kick dv moves xi by
+    `xi_per_kick` x dv (it does not move x).
+      point mass (linear inverted pendulum): omega = sqrt(g / z), the COM velocity changes by
+        share x dv;
+      rigid block pivoting on its feet: the whole doll turns about the floor under the ankles,
+        I_pivot theta'' = m g (x - p): omega = sqrt(m g z / I_pivot), and the kick's angular
+        momentum about the pivot, m_torso z_torso dv, turns it: v = z theta' changes by
+        m_torso z_torso z dv / I_pivot. The torso sits above the COM, so a kick does more than
+        the point mass says.
+    """
+    physics = dbd.init(task.model)
+    count = physics.pos.shape[0]
+    mass = np.asarray(task.model.bodies.mass)[:count]
+    pos = np.asarray(physics.pos, np.float64)
+    com = (mass[:, None] * pos).sum(0) / mass.sum()
+    rotation = np.asarray(jax.vmap(math.quat_to_matrix)(physics.quat), np.float64)
+    principal = np.asarray(task.model.bodies.inertia, np.float64)[:count]
+    inertia_yy = np.einsum("nj,nj->n", rotation[:, 1, :] ** 2, principal)  # (R diag(I) R^T)_yy
+    # About the floor under the ankles (the world's y axis: the build pose stands on the origin).
+    pivot_inertia = float((inertia_yy + mass * (pos[:, 0] ** 2 + pos[:, 2] ** 2)).sum())
+    total, height = float(mass.sum()), float(com[2])
+    torso_height = float(pos[task.torso, 2])
+    omega_point = float(np.sqrt(GRAVITY / height))
+    omega_block = float(np.sqrt(total * GRAVITY * height / pivot_inertia))
+    share = float(mass[task.torso]) / total
+    return {
+        "point mass": {"omega_per_s": omega_point, "xi_per_kick_s": share / omega_point},
+        "rigid block": {"omega_per_s": omega_block, "xi_per_kick_s": float(mass[task.torso]) * torso_height * height
+                        / pivot_inertia / omega_block, "pivot_inertia_kg_m2": pivot_inertia,
+                        "torso_height_m": torso_height},
+    }  # fmt: skip
+
+
+def capture_point_survival(kicks: np.ndarray, low, high, omega: float, xi_per_kick: float, dt: float,
+                           start, aim) -> np.ndarray:  # fmt: skip
+    """The ideal feet-in-place balance under given kicks: for each episode the first step at which
+    the capture point leaves the support (the pendulum can no longer be stopped), or -1 if it never
+    does. kicks: (episodes, steps, 2) m/s in the heading frame; low, high: (2,) m the support's
+    bounds on the capture point (x forward from the ankles, y left); start: (2,) the capture point
+    at the start (the build pose at rest: its COM); aim: (2,) where it is driven back to.
+
+    Between kicks the centre of pressure sits at the support's edge beyond the capture point, which
+    moves it back to `aim` as fast as any centre of pressure on the feet can (per axis: xi - p =
+    (xi0 - p) e^(omega t)), and then holds it there (p = xi)."""
+    low, high, aim = (np.asarray(x, np.float64) for x in (low, high, aim))
+    episodes, steps, _ = kicks.shape
+    xi = np.broadcast_to(np.asarray(start, np.float64), (episodes, 2)).copy()
+    failed_at = np.full(episodes, -1)
+    growth = np.exp(omega * dt)
+    for step in range(steps):
+        xi += xi_per_kick * kicks[:, step]
+        out = ((xi <= low) | (xi >= high)).any(1) & (failed_at < 0)
+        failed_at[out] = step
+        back_down = np.maximum(aim, high + (xi - high) * growth)  # p at the high edge
+        back_up = np.minimum(aim, low + (xi - low) * growth)  # p at the low edge
+        xi = np.where(xi > aim, back_down, back_up)
+    return failed_at
+
+
+def rotated(kicks: np.ndarray, angle: float) -> np.ndarray:
+    """The kicks (..., 2) turned by `angle` rad (a heading off by -angle)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * kicks[..., 0] - s * kicks[..., 1], s * kicks[..., 0] + c * kicks[..., 1]], -1)
+
+
+def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: list[str],
+                        aims=(0.02, 0.03, 0.04, 0.05, 0.06, 0.07), choice_episodes: int = 4096,
+                        choice_seed: int = 7) -> dict:  # fmt: skip
+    """Section 7: which of the episodes of `seed` an ideal feet-in-place balance survives
+    (`capture_point_survival`, both pendulums of `pendulum_models`; the capture point driven back
+    sideways to the middle and forwards to the one of `aims` that survives the most of
+    `choice_episodes` other episodes, of `choice_seed`), and, for each results file in `compare`
+    evaluated on those episodes, where its policy fell."""
+    steps = task.max_episode_steps
+    feet = support(task)
+    low = np.array([feet["heel_x_m"], -feet["feet_half_width_m"]])
+    high = np.array([feet["toe_x_m"], feet["feet_half_width_m"]])
+    start = np.array([feet["com_m"][0], 0.0])  # the build pose at rest
+    kicks = episode_kicks(task, episodes, seed, steps)
+    choice_kicks = episode_kicks(task, choice_episodes, choice_seed, steps)
+    result = {"episodes": episodes, "seed": seed, "steps": steps, "support_low_m": low.tolist(),
+              "support_high_m": high.tolist(), "start_m": start.tolist(), "choice_episodes": choice_episodes,
+              "choice_seed": choice_seed, "pushes_per_episode": float((np.abs(kicks).sum(-1) > 0).sum(1).mean()),
+              "models": {}}  # fmt: skip
+    lost = {}
+    for name, model in pendulum_models(task).items():
+
+        def failures(kicks, aim_x, model=model):
+            return capture_point_survival(kicks, low, high, model["omega_per_s"], model["xi_per_kick_s"], task.dt,
+                                          start, [aim_x, 0.0])  # fmt: skip
+
+        by_aim = {f"{aim:g}": float((failures(choice_kicks, aim) < 0).mean()) for aim in aims}
+        aim = max(aims, key=lambda aim: by_aim[f"{aim:g}"])
+        failed = failures(kicks, aim)
+        lost[name] = failed >= 0
+        result["models"][name] = dict(
+            model,
+            survival_of_choice_episodes_by_aim_m=by_aim,
+            aim_m=aim,
+            survived=int((failed < 0).sum()),
+            lost_episodes=np.flatnonzero(failed >= 0).tolist(),
+            # the heading is the starting one; while the policies stand it turns by 0.1 rad (median)
+            survived_heading_off_by_0_1_rad=[int((failures(rotated(kicks, a), aim) < 0).sum()) for a in (-0.1, 0.1)],
+        )  # fmt: skip
+        print(name, result["models"][name], flush=True)
+    # The check of the models against the doll: the largest backward kick the build pose (every
+    # drive holding it, no control) survives, against each model's heel margin / xi_per_kick.
+    speeds = np.round(np.arange(0.15, 0.2451, 0.01), 3)
+    kicked = single_kicks(RagdollStand(max_episode_steps=steps, push_interval=None), speeds, np.array([np.pi]))
+    survived = np.asarray(kicked["survived"])[:, 0].astype(bool)
+    result["largest_backward_kick_from_the_build_pose_m_per_s"] = {
+        "doll (build pose held), survived / fell": [float(speeds[survived].max(initial=0.0)),
+                                                    float(speeds[~survived].min(initial=np.inf))],
+        **{name: float((start[0] - low[0]) / model["xi_per_kick_s"]) for name, model in result["models"].items()},
+    }  # fmt: skip
+    print(result["largest_backward_kick_from_the_build_pose_m_per_s"], flush=True)
+    result["policies"] = []
+    for path in compare:
+        run = json.loads(Path(path).read_text())
+        lengths = np.asarray(run.get("evaluation_lengths", []))
+        evaluated_on = run.get("evaluation_seed", run.get("seed", 0) + 1)
+        if evaluated_on != seed or len(lengths) != episodes or run.get("max_episode_steps") != steps:
+            continue
+        fell = lengths < steps
+        row = {"results": Path(path).name, "survived": int((~fell).sum())}
+        for name, model_lost in lost.items():
+            row[f"falls in episodes the {name} loses"] = int((fell & model_lost).sum())
+            row[f"falls in episodes the {name} survives"] = int((fell & ~model_lost).sum())
+        result["policies"].append(row)
+        print(row, flush=True)
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "ragdoll_push_recovery.json"))
     parser.add_argument(
         "--only",
         nargs="+",
-        choices=["support", "kicks", "leans", "pushes", "budgets", "ramped"],
+        choices=["support", "kicks", "leans", "pushes", "budgets", "ramped", "capture"],
         help="run these sections alone (default: all)",
     )
+    parser.add_argument("--compare", nargs="*", default=[], help="training results files (JSON) whose reported "
+                        "episodes' falls section 7 sets beside the bound (those run on its episodes)")  # fmt: skip
+    parser.add_argument("--episodes", type=int, default=128, help="section 7's episodes (default 128, of seed 1: "
+                        "the training runs' reported episodes)")  # fmt: skip
     args = parser.parse_args()
-    sections = set(args.only or ["support", "kicks", "leans", "pushes", "budgets", "ramped"])
+    sections = set(args.only or ["support", "kicks", "leans", "pushes", "budgets", "ramped", "capture"])
     start = time.perf_counter()
     task = RagdollStand(max_episode_steps=300, push_interval=None)
     result = {"env_substeps": task.model.options.substeps, "env_iterations": task.model.options.iterations}
@@ -240,6 +411,9 @@ def main() -> None:
                                        substeps=substeps, iterations=8)  # fmt: skip
             result["ramped_leans_under_pushes"].append(dict(row, substeps=substeps, iterations=8))
             print(result["ramped_leans_under_pushes"][-1], flush=True)
+    if "capture" in sections:
+        result["feet_in_place_bound"] = feet_in_place_bound(RagdollStand(max_episode_steps=300), args.episodes, 1,
+                                                            args.compare)  # fmt: skip
     result["wall_s"] = time.perf_counter() - start
     result["load_average_at_end"] = list(os.getloadavg())
     Path(args.out).write_text(json.dumps(result, indent=1))

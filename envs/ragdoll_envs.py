@@ -198,29 +198,31 @@ class RagdollEnv(DbdFuncEnv):
         )
         return physics, task
 
-    def _push(self, key: jnp.ndarray) -> jnp.ndarray:
+    def kick(self, key: jnp.ndarray) -> jnp.ndarray:
+        """(3,) m/s, world frame: the torso kick drawn by a step's key (zeros on most steps, always
+        without pushes). Step t's key is the second half of `jax.random.split` of the state's key."""
         if self.push_interval is None:
             return jnp.zeros((3,), self.dtype)
         when, direction, size = jax.random.split(key, 3)
         pushed = jax.random.uniform(when, (), self.dtype) < self.dt / self.push_interval
         angle = jax.random.uniform(direction, (), self.dtype, -jnp.pi, jnp.pi)
         speed = jax.random.uniform(size, (), self.dtype, *self.push_speed)
-        kick = speed * jnp.stack([jnp.cos(angle), jnp.sin(angle), 0.0 * angle])
-        return jnp.where(pushed, kick, 0.0)
+        change = speed * jnp.stack([jnp.cos(angle), jnp.sin(angle), 0.0 * angle])
+        return jnp.where(pushed, change, 0.0)
 
     def task_before_physics(self, state: EnvState, action: jnp.ndarray, key: jnp.ndarray) -> dbd.State:
         physics = state.physics
         return dbd.State(
             pos=physics.pos,
             quat=physics.quat,
-            vel=physics.vel.at[self.torso].add(self._push(key)),
+            vel=physics.vel.at[self.torso].add(self.kick(key)),
             ang_vel=physics.ang_vel,
         )
 
     def task_update(self, state: EnvState, action: jnp.ndarray, physics: dbd.State) -> RagdollState:
         # The same key split as _advance, so the kick recorded is the one applied.
         _, step_key = jax.random.split(state.key)
-        return RagdollState(time=state.task.time + self.dt, previous_action=action, push=self._push(step_key))
+        return RagdollState(time=state.task.time + self.dt, previous_action=action, push=self.kick(step_key))
 
     def observe_body(self, state: EnvState) -> jnp.ndarray:
         """The 133 numbers every ragdoll task observes (module docstring)."""

@@ -420,7 +420,7 @@ def test_ragdoll_action_zero_is_the_build_pose_and_one_slope_reaches_every_targe
 
 def test_pushes_come_at_the_documented_rate_with_horizontal_kicks_of_the_documented_size(stand):
     count = 40_000
-    kicks = np.asarray(quick_jit(jax.vmap(stand._push))(jax.random.split(jax.random.PRNGKey(2), count)))
+    kicks = np.asarray(quick_jit(jax.vmap(stand.kick))(jax.random.split(jax.random.PRNGKey(2), count)))
     pushed = np.linalg.norm(kicks, axis=1) > 0
     rate = stand.dt / stand.push_interval  # 1/60 per step
     assert abs(pushed.mean() - rate) < 4 * np.sqrt(rate * (1 - rate) / count)
@@ -431,7 +431,7 @@ def test_pushes_come_at_the_documented_rate_with_horizontal_kicks_of_the_documen
     state, _, _ = stand.reset(jax.random.PRNGKey(3))
     key = jax.random.PRNGKey(4)
     kicked = stand.task_before_physics(state, jnp.zeros(26), key)
-    expected = state.physics.vel.at[stand.torso].add(stand._push(key))
+    expected = state.physics.vel.at[stand.torso].add(stand.kick(key))
     np.testing.assert_array_equal(np.asarray(kicked.vel), np.asarray(expected))
 
 

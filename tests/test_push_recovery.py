@@ -1,0 +1,101 @@
+"""The feet-in-place bound of benchmarks/ragdoll_push_recovery.py (section 7): the ideal capture-point
+balance it simulates, and the env's own push sequences it replays."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dbdjax.envs import RagdollStand
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "ragdoll_push_recovery.py"
+
+
+@pytest.fixture(scope="module")
+def recovery():
+    spec = importlib.util.spec_from_file_location("ragdoll_push_recovery", _PATH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+LOW, HIGH, AIM = np.array([-0.02, -0.09]), np.array([0.12, 0.09]), np.array([0.05, 0.0])
+OMEGA, XI_PER_KICK, DT = 3.0, 0.1, 1.0 / 30.0
+
+
+def _kicks(*events, steps=60):
+    """(1, steps, 2) kicks: (step, x, y) events."""
+    kicks = np.zeros((1, steps, 2))
+    for step, x, y in events:
+        kicks[0, step] = (x, y)
+    return kicks
+
+
+def test_one_kick_is_survived_exactly_when_it_keeps_the_capture_point_on_the_feet(recovery):
+    def failed_at(kick_x, kick_y=0.0):
+        kicks = _kicks((5, kick_x, kick_y))
+        return recovery.capture_point_survival(kicks, LOW, HIGH, OMEGA, XI_PER_KICK, DT, AIM, AIM)[0]
+
+    # From the aim (0.05) the heel is 0.07 behind and the toe 0.07 ahead: 0.7 m/s at 0.1 s per kick.
+    assert failed_at(-0.69) == -1 and failed_at(-0.71) == 5
+    assert failed_at(0.69) == -1 and failed_at(0.71) == 5
+    assert failed_at(0.0, 0.89) == -1 and failed_at(0.0, -0.91) == 5  # sideways: the feet at +-0.09
+
+
+def test_a_second_kick_fails_only_before_the_capture_point_has_come_back(recovery):
+    # A 0.5 m/s backward kick leaves xi 0.02 from the heel; at the heel's edge beyond it the centre of
+    # pressure moves it back as xi - heel = 0.02 e^(omega t) until it reaches the aim (0.07 from the
+    # heel, t = ln(3.5) / omega = 0.42 s, 12.5 steps). A second such kick k steps later fails while
+    # 0.02 e^(omega k dt) - 0.05 <= 0.
+    first = 10
+    for gap in range(1, 16):
+        kicks = _kicks((first, -0.5, 0.0), (first + gap, -0.5, 0.0))
+        failed = recovery.capture_point_survival(kicks, LOW, HIGH, OMEGA, XI_PER_KICK, DT, AIM, AIM)[0]
+        back = min(0.07, 0.02 * np.exp(OMEGA * gap * DT))
+        assert (failed == first + gap) == (back - 0.05 <= 0.0), gap
+        assert failed in (-1, first + gap)
+
+
+def test_the_start_counts_a_kick_before_the_doll_has_moved_its_capture_point(recovery):
+    start = np.array([0.0017, 0.0])  # the build pose's COM, 2.2 cm in front of the heel
+    early = recovery.capture_point_survival(_kicks((0, -0.3, 0.0)), LOW, HIGH, OMEGA, XI_PER_KICK, DT, start, AIM)
+    late = recovery.capture_point_survival(_kicks((40, -0.3, 0.0)), LOW, HIGH, OMEGA, XI_PER_KICK, DT, start, AIM)
+    assert early[0] == 0 and late[0] == -1
+
+
+def test_the_replayed_pushes_are_the_ones_the_env_applies_in_those_episodes(recovery):
+    task = RagdollStand(max_episode_steps=30, push_interval=0.1)  # a push every third step on average
+    kicks = recovery.episode_kicks(task, 3, seed=5, steps=30)
+
+    def rollout(key):
+        state, _, _ = task.reset(key)
+        yaw = task.heading(state.physics)
+
+        def body(state, _):
+            state, _, _, _, _, info = task.step(state, jnp.zeros(task.action_size))
+            return state, info["push"]
+
+        _, pushes = jax.lax.scan(body, state, None, length=30)
+        return pushes, yaw
+
+    pushes, yaw = jax.jit(jax.vmap(rollout))(jax.random.split(jax.random.PRNGKey(5), 3))
+    pushes, yaw = np.asarray(pushes), np.asarray(yaw)
+    world = np.stack([recovery.rotated(kicks[i], yaw[i]) for i in range(3)])
+    np.testing.assert_allclose(world, pushes[..., :2], atol=1e-6)
+    assert (np.linalg.norm(pushes, axis=-1) > 0).sum() >= 15 and np.all(pushes[..., 2] == 0.0)
+
+
+def test_a_torso_kick_moves_the_rigid_dolls_capture_point_more_than_a_point_masss(recovery):
+    models = recovery.pendulum_models(RagdollStand(max_episode_steps=30))
+    point, block = models["point mass"], models["rigid block"]
+    assert point["omega_per_s"] == pytest.approx(np.sqrt(9.81 / 0.99), rel=0.01)
+    # The block turns about its feet (slower) and the kick lands 0.3 m above the COM (more effect).
+    assert block["omega_per_s"] < point["omega_per_s"]
+    assert 1.1 * point["xi_per_kick_s"] < block["xi_per_kick_s"] < 1.4 * point["xi_per_kick_s"]
