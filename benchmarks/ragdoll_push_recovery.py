@@ -23,7 +23,7 @@ the build pose (action 0, every drive holding the standing pose) and the capture
    policy that keeps the feet in place and does not swing the upper body.
 
     python benchmarks/ragdoll_push_recovery.py [--out benchmarks/results/ragdoll_push_recovery.json]
-    python benchmarks/ragdoll_push_recovery.py --only budgets ramped   # sections 5 and 6 alone
+    python benchmarks/ragdoll_push_recovery.py --only budgets ramped   # sections 5 and 6 (the file keeps the rest)
     python benchmarks/ragdoll_push_recovery.py --only capture --compare benchmarks/results/ppo_*.json
 """
 
@@ -298,51 +298,103 @@ def capture_point_survival(kicks: np.ndarray, low, high, omega: float, xi_per_ki
     return failed_at
 
 
+def clairvoyant_survival(kicks: np.ndarray, low, high, omega: float, xi_per_kick: float, dt: float,
+                         start) -> np.ndarray:  # fmt: skip
+    """`capture_point_survival` for a balance that knows every kick in advance: the first step at
+    which no centre of pressure on the feet could have kept the capture point on them, or -1. Per
+    axis the capture points reachable so far form an interval [a, b] (from `start`); between kicks
+    it widens at the rate the edges allow (a with p at the high edge, b at the low one), a kick
+    shifts it, and it is cut to the feet; an empty interval loses the episode."""
+    low, high = (np.asarray(x, np.float64) for x in (low, high))
+    episodes, steps, _ = kicks.shape
+    a = np.broadcast_to(np.asarray(start, np.float64), (episodes, 2)).copy()
+    b = a.copy()
+    failed_at = np.full(episodes, -1)
+    growth = np.exp(omega * dt)
+    for step in range(steps):
+        a = np.maximum(a + xi_per_kick * kicks[:, step], low)
+        b = np.minimum(b + xi_per_kick * kicks[:, step], high)
+        out = (a > b).any(1) & (failed_at < 0)
+        failed_at[out] = step
+        a, b = np.maximum(low, high + (a - high) * growth), np.minimum(high, low + (b - low) * growth)
+    return failed_at
+
+
 def rotated(kicks: np.ndarray, angle: float) -> np.ndarray:
     """The kicks (..., 2) turned by `angle` rad (a heading off by -angle)."""
     c, s = np.cos(angle), np.sin(angle)
     return np.stack([c * kicks[..., 0] - s * kicks[..., 1], s * kicks[..., 0] + c * kicks[..., 1]], -1)
 
 
-def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: list[str],
+def _falls_beside(fell: np.ndarray, lost: dict[str, np.ndarray]) -> dict:
+    """How a policy's falls (episodes,) split over the episodes each ideal balance loses or keeps."""
+    row = {"survived": int((~fell).sum()), "episodes": len(fell)}
+    for name, model_lost in lost.items():
+        row[f"falls in episodes the {name} loses"] = int((fell & model_lost).sum())
+        row[f"falls in episodes the {name} survives"] = int((fell & ~model_lost).sum())
+    return row
+
+
+def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: list[str], checkpoints: list[str],
+                        policy_episodes: int = 1024, policy_seed: int = 11,
                         aims=(0.02, 0.03, 0.04, 0.05, 0.06, 0.07), choice_episodes: int = 4096,
                         choice_seed: int = 7) -> dict:  # fmt: skip
-    """Section 7: which of the episodes of `seed` an ideal feet-in-place balance survives
-    (`capture_point_survival`, both pendulums of `pendulum_models`; the capture point driven back
-    sideways to the middle and forwards to the one of `aims` that survives the most of
-    `choice_episodes` other episodes, of `choice_seed`), and, for each results file in `compare`
-    evaluated on those episodes, where its policy fell."""
+    """Section 7: which of the episodes of `seed` an ideal feet-in-place balance survives, reacting
+    to each kick as it comes (`capture_point_survival`: the capture point driven back sideways to
+    the middle and forwards to the one of `aims` that survives the most of `choice_episodes` other
+    episodes, of `choice_seed`) or knowing them all in advance (`clairvoyant_survival`), for both
+    pendulums of `pendulum_models`; for each results file in `compare` run on those episodes, where
+    its policy fell; and each policy checkpoint of `checkpoints` (`training.checkpoint` files)
+    evaluated on `policy_episodes` episodes of `policy_seed` beside the same balances there."""
     steps = task.max_episode_steps
     feet = support(task)
     low = np.array([feet["heel_x_m"], -feet["feet_half_width_m"]])
     high = np.array([feet["toe_x_m"], feet["feet_half_width_m"]])
     start = np.array([feet["com_m"][0], 0.0])  # the build pose at rest
-    kicks = episode_kicks(task, episodes, seed, steps)
-    choice_kicks = episode_kicks(task, choice_episodes, choice_seed, steps)
+    kicks = {"reported": episode_kicks(task, episodes, seed, steps),
+             "choice": episode_kicks(task, choice_episodes, choice_seed, steps),
+             "policies": episode_kicks(task, policy_episodes, policy_seed, steps) if checkpoints else None}  # fmt: skip
     result = {"episodes": episodes, "seed": seed, "steps": steps, "support_low_m": low.tolist(),
               "support_high_m": high.tolist(), "start_m": start.tolist(), "choice_episodes": choice_episodes,
-              "choice_seed": choice_seed, "pushes_per_episode": float((np.abs(kicks).sum(-1) > 0).sum(1).mean()),
+              "choice_seed": choice_seed, "policy_episodes": policy_episodes, "policy_seed": policy_seed,
+              "pushes_per_episode": float((np.abs(kicks["reported"]).sum(-1) > 0).sum(1).mean()),
               "models": {}}  # fmt: skip
-    lost = {}
+    lost = {"reported": {}, "policies": {}}
     for name, model in pendulum_models(task).items():
+        omega, xi_per_kick = model["omega_per_s"], model["xi_per_kick_s"]
 
-        def failures(kicks, aim_x, model=model):
-            return capture_point_survival(kicks, low, high, model["omega_per_s"], model["xi_per_kick_s"], task.dt,
-                                          start, [aim_x, 0.0])  # fmt: skip
+        def reacting(kicks, aim_x, omega=omega, xi_per_kick=xi_per_kick):
+            return capture_point_survival(kicks, low, high, omega, xi_per_kick, task.dt, start, [aim_x, 0.0])
 
-        by_aim = {f"{aim:g}": float((failures(choice_kicks, aim) < 0).mean()) for aim in aims}
+        def knowing(kicks, omega=omega, xi_per_kick=xi_per_kick):
+            return clairvoyant_survival(kicks, low, high, omega, xi_per_kick, task.dt, start)
+
+        by_aim = {f"{aim:g}": float((reacting(kicks["choice"], aim) < 0).mean()) for aim in aims}
         aim = max(aims, key=lambda aim: by_aim[f"{aim:g}"])
-        failed = failures(kicks, aim)
-        lost[name] = failed >= 0
+        failed, failed_knowing = reacting(kicks["reported"], aim), knowing(kicks["reported"])
+        lost["reported"][name] = failed >= 0
+        lost["reported"][f"{name} knowing the kicks"] = failed_knowing >= 0
         result["models"][name] = dict(
             model,
             survival_of_choice_episodes_by_aim_m=by_aim,
             aim_m=aim,
             survived=int((failed < 0).sum()),
-            lost_episodes=np.flatnonzero(failed >= 0).tolist(),
+            lost_episodes={int(e): int(failed[e]) for e in np.flatnonzero(failed >= 0)},  # episode: step
             # the heading is the starting one; while the policies stand it turns by 0.1 rad (median)
-            survived_heading_off_by_0_1_rad=[int((failures(rotated(kicks, a), aim) < 0).sum()) for a in (-0.1, 0.1)],
+            survived_heading_off_by_0_1_rad=[int((reacting(rotated(kicks["reported"], a), aim) < 0).sum())
+                                             for a in (-0.1, 0.1)],
+            knowing_the_kicks={"survived": int((failed_knowing < 0).sum()),
+                               "lost_episodes": {int(e): int(failed_knowing[e])
+                                                 for e in np.flatnonzero(failed_knowing >= 0)},
+                               "survival_of_choice_episodes": float((knowing(kicks["choice"]) < 0).mean())},
         )  # fmt: skip
+        if checkpoints:
+            lost["policies"][name] = reacting(kicks["policies"], aim) >= 0
+            lost["policies"][f"{name} knowing the kicks"] = knowing(kicks["policies"]) >= 0
+            result["models"][name]["survival_of_policy_episodes"] = float((~lost["policies"][name]).mean())
+            result["models"][name]["knowing_the_kicks"]["survival_of_policy_episodes"] = float(
+                (~lost["policies"][f"{name} knowing the kicks"]).mean()
+            )
         print(name, result["models"][name], flush=True)
     # The check of the models against the doll: the largest backward kick the build pose (every
     # drive holding it, no control) survives, against each model's heel margin / xi_per_kick.
@@ -362,13 +414,18 @@ def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: l
         evaluated_on = run.get("evaluation_seed", run.get("seed", 0) + 1)
         if evaluated_on != seed or len(lengths) != episodes or run.get("max_episode_steps") != steps:
             continue
-        fell = lengths < steps
-        row = {"results": Path(path).name, "survived": int((~fell).sum())}
-        for name, model_lost in lost.items():
-            row[f"falls in episodes the {name} loses"] = int((fell & model_lost).sum())
-            row[f"falls in episodes the {name} survives"] = int((fell & ~model_lost).sum())
-        result["policies"].append(row)
-        print(row, flush=True)
+        result["policies"].append({"results": Path(path).name, **_falls_beside(lengths < steps, lost["reported"])})
+        print(result["policies"][-1], flush=True)
+    result["checkpoints"] = []
+    for path in checkpoints:
+        from dbdjax.training import checkpoint, rl  # noqa: PLC0415 (the train extra, only for this)
+
+        params, _ = checkpoint.load(path)
+        evaluation = rl.evaluate(task, params, policy_episodes, seed=policy_seed)
+        fell = np.asarray(evaluation["lengths"]) < steps
+        result["checkpoints"].append({"checkpoint": Path(path).name, "mean_return": evaluation["mean_return"],
+                                      **_falls_beside(fell, lost["policies"])})  # fmt: skip
+        print(result["checkpoints"][-1], flush=True)
     return result
 
 
@@ -385,11 +442,24 @@ def main() -> None:
                         "episodes' falls section 7 sets beside the bound (those run on its episodes)")  # fmt: skip
     parser.add_argument("--episodes", type=int, default=128, help="section 7's episodes (default 128, of seed 1: "
                         "the training runs' reported episodes)")  # fmt: skip
+    parser.add_argument("--checkpoints", nargs="*", default=[], help="policy checkpoints (.npz) that section 7 "
+                        "evaluates on --policy-episodes other episodes beside the bound")  # fmt: skip
+    parser.add_argument("--policy-episodes", type=int, default=1024)
     args = parser.parse_args()
+    if args.checkpoints and "capture" in (args.only or ["capture"]):
+        from dbdjax.training import rl  # noqa: PLC0415 (the train extra, only for the checkpoints)
+
+        rl.use_cpu_devices(None)  # their evaluations split over the cores, as the trainers' are
     sections = set(args.only or ["support", "kicks", "leans", "pushes", "budgets", "ramped", "capture"])
     start = time.perf_counter()
     task = RagdollStand(max_episode_steps=300, push_interval=None)
-    result = {"env_substeps": task.model.options.substeps, "env_iterations": task.model.options.iterations}
+    out = Path(args.out)
+    # Sections run now replace theirs in an existing file; the others' results stay.
+    result = json.loads(out.read_text()) if out.exists() else {}
+    if "wall_s" in result:  # a file from before runs were listed
+        result["runs"] = [{"sections": "all", "wall_s": result.pop("wall_s"),
+                           "load_average_at_end": result.pop("load_average_at_end", None)}]  # fmt: skip
+    result.update(env_substeps=task.model.options.substeps, env_iterations=task.model.options.iterations)
     if "support" in sections:
         result["support"] = support(task)
         print(json.dumps(result["support"], indent=1), flush=True)
@@ -413,11 +483,12 @@ def main() -> None:
             print(result["ramped_leans_under_pushes"][-1], flush=True)
     if "capture" in sections:
         result["feet_in_place_bound"] = feet_in_place_bound(RagdollStand(max_episode_steps=300), args.episodes, 1,
-                                                            args.compare)  # fmt: skip
-    result["wall_s"] = time.perf_counter() - start
-    result["load_average_at_end"] = list(os.getloadavg())
-    Path(args.out).write_text(json.dumps(result, indent=1))
-    print(f"wrote {args.out} ({result['wall_s']:.0f} s)")
+                                                            args.compare, args.checkpoints,
+                                                            policy_episodes=args.policy_episodes)  # fmt: skip
+    run = {"sections": sorted(sections), "wall_s": time.perf_counter() - start, "load_average_at_end": os.getloadavg()}
+    result.setdefault("runs", []).append(run)
+    out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {out} ({run['wall_s']:.0f} s)")
 
 
 if __name__ == "__main__":

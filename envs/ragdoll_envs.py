@@ -51,11 +51,16 @@ in place can survive. By the capture point of the linear inverted pendulum (READ
 pushes be survived?"), a torso kick is recoverable without a step up to 0.76 m/s forwards or
 backwards with the centre of mass over the middle of the feet (0.98 m/s sideways), but only
 0.24 m/s backwards from the build pose, whose centre of mass is 2 cm from the heel edge; so
-every default push can be survived by balancing (leaning, ankle and hip torques), and the build
+every default push alone can be survived by balancing (leaning, ankle and hip torques), and the build
 pose alone survives few episodes (9 of 48 full 300-step episodes, where a forward ankle lean of
 0.036 rad, ramped in over 1 s, survives 41 of 48; at the former 2 substeps: 1 of 32, and 10 of
 32 for the best lean, 0.008 rad). Most kicks of the old range need a step, which left the
-learners no strategy within reach (`push_speed=(0.5, 1.5)` gives it back).
+learners no strategy within reach (`push_speed=(0.5, 1.5)` gives it back). An episode's pushes
+together are another matter: about 5 per 300 steps, some in the first steps (before any lean) and
+some a few steps apart in about the same direction. An ideal balance with the feet in place, run on
+each episode's own pushes (`benchmarks/ragdoll_push_recovery.py`, section 7), loses 4% of the
+episodes as a point mass and 9% as the rigid doll (README: "How many episodes can be survived
+with the feet in place?").
 """
 
 from __future__ import annotations

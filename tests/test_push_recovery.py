@@ -99,3 +99,23 @@ def test_a_torso_kick_moves_the_rigid_dolls_capture_point_more_than_a_point_mass
     # The block turns about its feet (slower) and the kick lands 0.3 m above the COM (more effect).
     assert block["omega_per_s"] < point["omega_per_s"]
     assert 1.1 * point["xi_per_kick_s"] < block["xi_per_kick_s"] < 1.4 * point["xi_per_kick_s"]
+
+
+def test_knowing_the_kicks_saves_every_episode_the_reacting_balance_saves_and_some_more(recovery):
+    rng = np.random.default_rng(0)
+    pushed = rng.random((256, 120)) < 0.05  # a kick every 20 steps on average
+    angle, speed = rng.uniform(-np.pi, np.pi, pushed.shape), rng.uniform(0.2, 0.6, pushed.shape)
+    kicks = np.where(pushed[..., None], speed[..., None] * np.stack([np.cos(angle), np.sin(angle)], -1), 0.0)
+    start = np.array([0.0017, 0.0])
+    reacting = recovery.capture_point_survival(kicks, LOW, HIGH, OMEGA, XI_PER_KICK, DT, start, AIM)
+    knowing = recovery.clairvoyant_survival(kicks, LOW, HIGH, OMEGA, XI_PER_KICK, DT, start)
+    assert np.all(knowing[reacting < 0] < 0)  # never worse
+    assert (knowing < 0).sum() > (reacting < 0).sum() > 0
+    # Two forward kicks of 0.45 m/s three steps apart: reacting, xi has gone to the aim (0.05, 0.07
+    # from the toe) and the pair takes it 0.09 forward; knowing them, it stays back near the heel.
+    pair = _kicks((20, 0.45, 0.0), (23, 0.45, 0.0))
+    assert recovery.capture_point_survival(pair, LOW, HIGH, OMEGA, XI_PER_KICK, DT, start, AIM)[0] == 23
+    assert recovery.clairvoyant_survival(pair, LOW, HIGH, OMEGA, XI_PER_KICK, DT, start)[0] == -1
+    # A kick at the first step that takes xi past the heel (2.17 cm behind the start) is lost anyway.
+    assert recovery.clairvoyant_survival(_kicks((0, -0.22, 0.0)), LOW, HIGH, OMEGA, XI_PER_KICK, DT, start)[0] == 0
+    assert recovery.clairvoyant_survival(_kicks((0, -0.21, 0.0)), LOW, HIGH, OMEGA, XI_PER_KICK, DT, start)[0] == -1
