@@ -424,8 +424,9 @@ def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: l
         evaluation = rl.evaluate(task, params, policy_episodes, seed=policy_seed)
         fell = np.asarray(evaluation["lengths"]) < steps
         result["checkpoints"].append({"checkpoint": Path(path).name, "mean_return": evaluation["mean_return"],
-                                      **_falls_beside(fell, lost["policies"])})  # fmt: skip
-        print(result["checkpoints"][-1], flush=True)
+                                      **_falls_beside(fell, lost["policies"]),
+                                      "lengths": np.asarray(evaluation["lengths"]).tolist()})  # fmt: skip
+        print({key: value for key, value in result["checkpoints"][-1].items() if key != "lengths"}, flush=True)
     return result
 
 

@@ -59,8 +59,8 @@ learners no strategy within reach (`push_speed=(0.5, 1.5)` gives it back). An ep
 together are another matter: about 5 per 300 steps, some in the first steps (before any lean) and
 some a few steps apart in about the same direction. An ideal balance with the feet in place, run on
 each episode's own pushes (`benchmarks/ragdoll_push_recovery.py`, section 7), loses 4% of the
-episodes as a point mass and 9% as the rigid doll (README: "How many episodes can be survived
-with the feet in place?").
+episodes as a point mass and 9-10% as the rigid doll, and 2-3% even knowing every push in advance
+(README: "How many episodes can be survived with the feet in place?").
 """
 
 from __future__ import annotations
@@ -272,7 +272,7 @@ class RagdollStand(RagdollEnv):
     """dbdjax/RagdollStand-v0: stay upright and in place under random pushes.
 
     Everything but the reward is `RagdollEnv`'s (module docstring); pushes every 2 s on average,
-    0.2-0.6 m/s on the torso (survivable with the feet in place: module docstring). Reward per step, the sum of:
+    0.2-0.6 m/s on the torso (each survivable with the feet in place: module docstring). Reward per step, the sum of:
       alive   = `alive_bonus` (1.0) while the episode runs,
       upright = -`upright_weight` (1.0) x (1 - z of the torso's up axis) (0 standing straight),
       height  = -`height_weight` (2.0) x |pelvis height - standing height| (m),
