@@ -16,11 +16,12 @@ the build pose (action 0, every drive holding the standing pose) and the capture
    several substeps x iterations: where the ankles end and whether the doll stands (at 2 x 8 the
    ankles sag to -0.1 rad and it falls: README, "The solver budget sets the ankles' stiffness").
 6. Ramped ankle leans under the env's pushes, 48 episodes of 300 steps, at two budgets.
-7. The feet-in-place bound under the env's own push sequences: the capture point of the linear
-   inverted pendulum driven back to the middle of the support as fast as a centre of pressure
-   anywhere on the feet allows (the ideal ankle strategy), kicked by each episode's pushes (the
-   same episodes as `rl.evaluate`'s for a seed). The episodes it cannot keep up are lost to any
-   policy that keeps the feet in place and does not swing the upper body.
+7. The feet-in-place bound under the env's own push sequences: the capture point of an inverted
+   pendulum (a point mass, and the rigid doll turning on its feet) kicked by each episode's pushes
+   (the same episodes as `rl.evaluate`'s for a seed), driven back to the middle of the support as
+   fast as a centre of pressure anywhere on the feet allows (an ideal ankle strategy), or steered
+   knowing every kick in advance. The episodes the second loses are lost to any balance with the
+   feet in place (to the pendulum's accuracy); the policies' falls are set beside both.
 
     python benchmarks/ragdoll_push_recovery.py [--out benchmarks/results/ragdoll_push_recovery.json]
     python benchmarks/ragdoll_push_recovery.py --only budgets ramped   # sections 5 and 6 (the file keeps the rest)
