@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import dbdjax as dbd
-from dbdjax import math, ragdoll
+from dbdjax import diagnostics, ragdoll
 from dbdjax.envs import RagdollStand
 from dbdjax.envs.core import yaw_rotate_inverse
 
@@ -212,12 +212,12 @@ def solver_budgets(budgets, ankle_action: float = -0.045) -> list[dict]:
     return rows
 
 
-def episode_kicks(task: RagdollStand, episodes: int, seed: int, steps: int) -> np.ndarray:
+def episode_kicks(task: RagdollStand, episodes: int, seed: int, steps: int, heading_error: float = 0.0) -> np.ndarray:
     """(episodes, steps, 2) m/s: the torso kick of every step of the episodes `rl.evaluate(task, ...,
     episodes, seed)` runs (the same keys), in the doll's starting heading frame (x forward, y
     left). The kicks come from the key chain alone, so they are the pushes of those episodes
     whatever the policy does (past a fall too); the doll's heading is taken as the one it starts
-    with (it turns little while it stands)."""
+    with (it turns little while it stands), plus `heading_error` rad to see what that costs."""
 
     @jax.jit
     def run(keys):
@@ -229,7 +229,7 @@ def episode_kicks(task: RagdollStand, episodes: int, seed: int, steps: int) -> n
                 return key, task.kick(step_key)
 
             _, kicks = jax.lax.scan(body, state.key, None, length=steps)
-            return yaw_rotate_inverse(task.heading(state.physics), kicks)[:, :2]
+            return yaw_rotate_inverse(task.heading(state.physics) + heading_error, kicks)[:, :2]
 
         return jax.vmap(one)(keys)
 
@@ -243,33 +243,31 @@ def pendulum_models(task: RagdollStand) -> dict:
     with d xi / dt = omega (xi - p), p the centre of pressure, and a torso kick dv moves xi by
     `xi_per_kick` x dv (it does not move x).
       point mass (linear inverted pendulum): omega = sqrt(g / z), the COM velocity changes by
-        share x dv;
+        share x dv (`support`);
       rigid block pivoting on its feet: the whole doll turns about the floor under the ankles,
         I_pivot theta'' = m g (x - p): omega = sqrt(m g z / I_pivot), and the kick's angular
         momentum about the pivot, m_torso z_torso dv, turns it: v = z theta' changes by
         m_torso z_torso z dv / I_pivot. The torso sits above the COM, so a kick does more than
         the point mass says.
     """
+    feet = support(task)
     physics = dbd.init(task.model)
-    count = physics.pos.shape[0]
-    mass = np.asarray(task.model.bodies.mass)[:count]
-    pos = np.asarray(physics.pos, np.float64)
-    com = (mass[:, None] * pos).sum(0) / mass.sum()
-    rotation = np.asarray(jax.vmap(math.quat_to_matrix)(physics.quat), np.float64)
-    principal = np.asarray(task.model.bodies.inertia, np.float64)[:count]
-    inertia_yy = np.einsum("nj,nj->n", rotation[:, 1, :] ** 2, principal)  # (R diag(I) R^T)_yy
-    # About the floor under the ankles (the world's y axis: the build pose stands on the origin).
-    pivot_inertia = float((inertia_yy + mass * (pos[:, 0] ** 2 + pos[:, 2] ** 2)).sum())
-    total, height = float(mass.sum()), float(com[2])
-    torso_height = float(pos[task.torso, 2])
-    omega_point = float(np.sqrt(GRAVITY / height))
+    # I_pivot: the angular momentum of the doll turning as one body at 1 rad/s about the world's y
+    # axis (the floor line under the ankles: the build pose stands on the origin).
+    turn = jnp.array([0.0, 1.0, 0.0], physics.pos.dtype)
+    turning = dbd.State(pos=physics.pos, quat=physics.quat, vel=jnp.cross(turn, physics.pos),
+                        ang_vel=jnp.broadcast_to(turn, physics.pos.shape))  # fmt: skip
+    pivot_inertia = float(diagnostics.angular_momentum(task.model, turning)[1])
+    total = float(np.sum(task.model.bodies.mass))
+    height, torso_height = float(feet["com_m"][2]), float(physics.pos[task.torso, 2])
+    torso_mass = feet["torso_mass_share"] * total
     omega_block = float(np.sqrt(total * GRAVITY * height / pivot_inertia))
-    share = float(mass[task.torso]) / total
     return {
-        "point mass": {"omega_per_s": omega_point, "xi_per_kick_s": share / omega_point},
-        "rigid block": {"omega_per_s": omega_block, "xi_per_kick_s": float(mass[task.torso]) * torso_height * height
-                        / pivot_inertia / omega_block, "pivot_inertia_kg_m2": pivot_inertia,
-                        "torso_height_m": torso_height},
+        "point mass": {"omega_per_s": feet["omega_per_s"],
+                       "xi_per_kick_s": feet["torso_mass_share"] / feet["omega_per_s"]},
+        "rigid block": {"omega_per_s": omega_block,
+                        "xi_per_kick_s": torso_mass * torso_height * height / pivot_inertia / omega_block,
+                        "pivot_inertia_kg_m2": pivot_inertia, "torso_height_m": torso_height},
     }  # fmt: skip
 
 
@@ -319,12 +317,6 @@ def clairvoyant_survival(kicks: np.ndarray, low, high, omega: float, xi_per_kick
         failed_at[out] = step
         a, b = np.maximum(low, high + (a - high) * growth), np.minimum(high, low + (b - low) * growth)
     return failed_at
-
-
-def rotated(kicks: np.ndarray, angle: float) -> np.ndarray:
-    """The kicks (..., 2) turned by `angle` rad (a heading off by -angle)."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.stack([c * kicks[..., 0] - s * kicks[..., 1], s * kicks[..., 0] + c * kicks[..., 1]], -1)
 
 
 def _falls_beside(fell: np.ndarray, lost: dict[str, np.ndarray]) -> dict:
@@ -382,8 +374,10 @@ def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: l
             survived=int((failed < 0).sum()),
             lost_episodes={int(e): int(failed[e]) for e in np.flatnonzero(failed >= 0)},  # episode: step
             # the heading is the starting one; while the policies stand it turns by 0.1 rad (median)
-            survived_heading_off_by_0_1_rad=[int((reacting(rotated(kicks["reported"], a), aim) < 0).sum())
-                                             for a in (-0.1, 0.1)],
+            survived_heading_off_by_0_1_rad=[
+                int((reacting(episode_kicks(task, episodes, seed, steps, error), aim) < 0).sum())
+                for error in (-0.1, 0.1)
+            ],
             knowing_the_kicks={"survived": int((failed_knowing < 0).sum()),
                                "lost_episodes": {int(e): int(failed_knowing[e])
                                                  for e in np.flatnonzero(failed_knowing >= 0)},
