@@ -135,6 +135,8 @@ class _Joint:
     axis_damping: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     armature: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # per degree of freedom
     baumgarte: float | None = None  # beta of SI (17) for the impulse solver; None: finalize's
+    limit_stiffness: float = 0.0  # soft limits (set_limit_softness): 1/s^2 per unit effective mass
+    limit_damping: float = 0.0  # 1/s
 
     @property
     def num_axes(self) -> int:
@@ -716,6 +718,28 @@ class ModelBuilder:
             per_axis[: record.num_axes] = [self._non_negative(v, f"{what}: {field}") for v in values]
             setattr(record, f"axis_{field}", per_axis)
 
+    def set_limit_softness(self, joint: int, time_constant: float, damping_ratio: float = 1.0) -> None:
+        """Make a joint's limits soft, as MuJoCo's are (MJCF solreflimit = (time_constant,
+        damping_ratio)): past a bound, the limit row is an implicit spring and damper per unit of
+        its effective mass, so that the overshoot decays like a damped oscillator of natural
+        frequency 1 / (time_constant damping_ratio) and that damping ratio, whatever the masses.
+        A joint built past a bound eases back over about `time_constant` instead of being snapped
+        back within one step; a limit hit at speed is overrun by about speed x time_constant.
+        time_constant: s, > 0. damping_ratio: > 0 (1: critically damped). Limits stay rigid by
+        default. The impulse solver keeps them rigid (its bias already corrects over several steps).
+        """
+        label, record = self._actuated_joint("set_limit_softness", joint)
+        if not (record.has_limits or record.has_cone or any(record.axis_limited)):
+            raise ValueError(f"set_limit_softness: {label} has no limits")
+        time_constant = _scalar(time_constant, f"set_limit_softness on {label}: time_constant")
+        damping_ratio = _scalar(damping_ratio, f"set_limit_softness on {label}: damping_ratio")
+        if not (time_constant > 0.0 and damping_ratio > 0.0):
+            raise ValueError(f"set_limit_softness on {label}: time_constant and damping_ratio must be positive, got "
+                             f"{time_constant} and {damping_ratio}")  # fmt: skip
+        frequency = 1.0 / (time_constant * damping_ratio)  # rad/s
+        record.limit_stiffness = frequency**2
+        record.limit_damping = 2.0 / time_constant  # = 2 damping_ratio frequency
+
     def add_armature(self, joint: int, armature: float | Sequence[float]) -> None:
         """Rotor inertia on a joint's degrees of freedom (MJCF's armature): kg m^2 on a hinge, planar
         (its rotation), ball (about every axis), universal or gimbal joint (one number, or one per
@@ -1234,7 +1258,8 @@ class ModelBuilder:
             rest_rotation=table([host_math.multiply(host_math.conjugate(frame(j.body_a)[1]), frame(j.body_b)[1])
                                  for j in js], 4),  # fmt: skip
             **{f: column(js, f) for f in ("lower", "upper", "cone_limit", "relaxation", "regularization",
-                                          "drive_stiffness", "drive_damping", "drive_max_torque", "motor_max_force")},
+                                          "drive_stiffness", "drive_damping", "drive_max_torque", "motor_max_force",
+                                          "limit_stiffness", "limit_damping")},
             local_axes_a=local_axes("body_a"),
             local_axes_b=local_axes("body_b"),
             **{f: table([getattr(j, f) for j in js], 3) for f in ("axis_lower", "axis_upper", "axis_stiffness",
@@ -1330,6 +1355,7 @@ class ModelBuilder:
             torque_dof=StaticArray(np.asarray([t.dof for t in self._torques], dtype=np.int32)),
             torque_in_joint=StaticArray(np.asarray(in_joint, dtype=bool)),
             joint_rotor=StaticArray(np.reshape(np.asarray([j.armature > 0.0 for j in js], dtype=bool), (-1, 3))),
+            joint_soft_limits=StaticArray(np.asarray([j.limit_stiffness > 0.0 for j in js], dtype=bool)),
         )
         contacts = len(structure.contact_groups)  # contact groups in colours of their own (colouring.py)
         contact_class = [0] * (len(structure.family_bodies()) - contacts) + [1] * contacts

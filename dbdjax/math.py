@@ -93,6 +93,11 @@ def safe_atan2(y: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
     return jnp.where(both_zero, 0.0, jnp.arctan2(y, safe_x))
 
 
+def wrap_angle(angle: jnp.ndarray) -> jnp.ndarray:
+    """angle (rad) wrapped to (-pi, pi], with gradient 1 everywhere."""
+    return safe_atan2(jnp.sin(angle), jnp.cos(angle))
+
+
 def quat_identity(shape: tuple[int, ...] = ()) -> jnp.ndarray:
     """Identity quaternions of the given leading shape, (*shape, 4)."""
     return jnp.zeros(shape + (4,)).at[..., 0].set(1.0)

@@ -42,7 +42,13 @@ joints   hinge -> hinge, slide -> slider, ball -> ball, free -> nothing. Limits 
          rotation), which holds whatever the parent does; a motor on such a dof acts through that
          row, so it accelerates bodies and rotor together as in MuJoCo. Not mapped (ignored): the
          armature of free joints, of a planar joint's slides and of hinges merged into a ball.
-         solref/solimp/margin are ignored too (our joints and limits are rigid).
+         Limits are soft as MuJoCo's: solreflimit (timeconst, dampratio) -> `set_limit_softness`,
+         a limit row past its bound is a spring and damper per unit effective mass with natural
+         frequency 1 / (timeconst dampratio) (timeconst at least 2 dt, MuJoCo's refsafe), so a pose
+         built past a limit (the humanoid's knees, the ant's ankles at qpos0) eases back in about
+         timeconst instead of being snapped back within one step (`_limit_softness`; solimp's
+         impedance below 1 is left out). `load_mjcf(..., soft_limits=False)`: rigid limits.
+         Joint solref/solimp (the joint points themselves) and margin are ignored: joints are rigid.
 geoms    sphere, capsule, box -> add_sphere/capsule/box in the body's inertial frame; plane ->
          add_plane (world only: normal = the geom's z axis, offset = normal . pos). friction[0]
          -> friction (condim 1: frictionless), contype/conaffinity kept, <exclude> pairs ->
@@ -177,10 +183,11 @@ def linear_passive_world(pos, quat, vel, ang_vel, params):
 
 
 # ------------------------------------------------------------------------------------ loading
-def load_mjcf(path_or_xml: str | os.PathLike, **finalize_kwargs: Any) -> Model:
+def load_mjcf(path_or_xml: str | os.PathLike, soft_limits: bool = True, **finalize_kwargs: Any) -> Model:
     """Build a `Model` from an MJCF file path or XML string (see this module's docstring for
     what maps and how). finalize_kwargs go to `ModelBuilder.finalize` (dt defaults to the
-    MJCF timestep). Raises ValueError naming the element for what cannot be simulated.
+    MJCF timestep). soft_limits: joint limits as soft as the file's solreflimit makes them in
+    MuJoCo (False: rigid). Raises ValueError naming the element for what cannot be simulated.
 
     Controls: one entry per MJCF actuator, in MuJoCo's order (motor: ctrl, a torque of gear *
     ctrl; position: the target angle from qpos0). `model.control_range` holds ctrlrange.
@@ -216,6 +223,16 @@ def load_mjcf(path_or_xml: str | os.PathLike, **finalize_kwargs: Any) -> Model:
     for e in range(m.nexclude):
         signature = int(m.exclude_signature[e])
         builder.exclude_collision(body_index[signature >> 16], body_index[signature & 0xFFFF])
+
+    if soft_limits:
+        dt = float(finalize_kwargs.get("dt", m.opt.timestep))
+        refsafe = not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_REFSAFE
+        softened = set()
+        for j in range(m.njnt):
+            if m.jnt_limited[j] and j in joint_of and joint_of[j][0] not in softened:
+                ours = joint_of[j][0]
+                builder.set_limit_softness(ours, *_limit_softness(m, j, dt, refsafe))
+                softened.add(ours)
 
     ball_drives: dict[int, int] = {}  # MuJoCo actuators already mapped onto a ball drive -> its control entry
     for a in range(m.nu):
@@ -386,6 +403,26 @@ def _add_body_joints(mujoco, m, d, builder: ModelBuilder, i: int, body_index, bo
     raise ValueError(f"load_mjcf: MJCF {body}: the joint combination {list(zip(names, kinds, strict=True))} is not "
                      "supported (one joint; 2-3 hinges through one point; or slide, slide and a hinge normal "
                      "to both)")  # fmt: skip
+
+
+def _limit_softness(m, j: int, dt: float, refsafe: bool) -> tuple[float, float]:
+    """(time constant s, damping ratio) of MJCF joint j's limit (solreflimit, solimplimit).
+
+    MuJoCo holds a violated constraint to a1 + d (b v + k r) = (1 - d) a0 with b = 2 / (dmax tc),
+    k = d / (dmax^2 tc^2 zeta^2): past the impedance's width (d = dmax) the violation r moves as a
+    damped oscillator of natural frequency 1 / (tc zeta) and damping ratio zeta, plus the fraction
+    1 - d of the unconstrained acceleration a0, which is left out here (5% with the default solimp).
+    tc is at least 2 dt unless refsafe is disabled. solref's direct form (-stiffness, -damping)
+    maps through the same oscillator: d k = stiffness / dmax, d b = damping."""
+    first, second = (float(v) for v in m.jnt_solref[j])
+    if first > 0.0:
+        return (max(first, 2.0 * dt) if refsafe else first), second
+    stiffness, damping = -first / float(m.jnt_solimp[j][1]), -second
+    if not (stiffness > 0.0 and damping > 0.0):
+        raise ValueError(f"load_mjcf: MJCF {_label(m, 'joint', j)}: solreflimit {tuple(m.jnt_solref[j])} has no "
+                         "stiffness or no damping; a limit needs both")  # fmt: skip
+    time_constant = 2.0 / damping
+    return time_constant, damping / (2.0 * math.sqrt(stiffness))
 
 
 def _passive_linear(m, d, builder, parent, child, j, world_axis, parent_quat, i) -> None:

@@ -130,6 +130,9 @@ class Joints:
       universal and gimbal joints (their drive_max_torque bounds each hinge's torque).
     armature: (J, 3) rotor inertia of each degree of freedom (MJCF armature): kg m^2 on hinge k of a
       universal or gimbal joint, entry 0 for a hinge, planar or ball joint (kg for a slider).
+    limit_stiffness (1/s^2), limit_damping (1/s): (J,) soft limits (`ModelBuilder.set_limit_softness`,
+      MJCF solreflimit): a limit row past its bound is a spring and damper per unit of the row's
+      effective mass, omega^2 and 2 zeta omega; both 0 where the limits are rigid.
     """
 
     local_anchor_a: jnp.ndarray
@@ -154,6 +157,8 @@ class Joints:
     axis_stiffness: jnp.ndarray
     axis_damping: jnp.ndarray
     armature: jnp.ndarray
+    limit_stiffness: jnp.ndarray
+    limit_damping: jnp.ndarray
 
 
 Joints = _pytree(Joints)
@@ -405,6 +410,8 @@ class Structure:
     # instead of in the prediction. (J, 3) bool: which degrees of freedom of each joint have armature.
     torque_in_joint: StaticArray = StaticArray(np.zeros((0,), bool))
     joint_rotor: StaticArray = StaticArray(np.zeros((0, 3), bool))
+    # (J,) bool: which joints' limits are soft (`Joints.limit_stiffness`). Empty: none.
+    joint_soft_limits: StaticArray = StaticArray(np.zeros((0,), bool))
 
     @property
     def num_colours(self) -> int:

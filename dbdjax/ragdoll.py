@@ -540,7 +540,9 @@ def load_mjcf_ragdoll(path: str | Path | None = None, **finalize_kwargs: Any) ->
     floor) from the MJCF file dbdjax/assets/ragdoll.xml (or `path`), loaded with `dbd.load_mjcf`
     (needs `mujoco`). finalize_kwargs go to `finalize` (dt defaults to the file's timestep, 1/60
     s). Joints of the loaded model are named as in the file: a ball joint "waist_x+waist_y+waist_z".
+    Its limits are rigid, as `build()`'s (`load_mjcf(..., soft_limits=False)`; pass
+    soft_limits=True for MuJoCo's soft ones).
     """
     from dbdjax.mjcf import load_mjcf
 
-    return load_mjcf(ASSET if path is None else path, **finalize_kwargs)
+    return load_mjcf(ASSET if path is None else path, **{"soft_limits": False, **finalize_kwargs})

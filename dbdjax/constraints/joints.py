@@ -90,6 +90,7 @@ class JointFlags(NamedTuple):
     rotor_slider: np.ndarray  # armature along a slider
     rotor_ball: np.ndarray  # armature on a ball joint (isotropic)
     rotor_euler: np.ndarray  # (J, 3): armature on hinge k of a universal or gimbal joint
+    soft_limits: np.ndarray  # the limit rows are springs past their bounds (`Joints.limit_stiffness`)
 
 
 class Targets(NamedTuple):
@@ -120,6 +121,9 @@ def flags(structure: Structure) -> JointFlags:
     rotor = structure.joint_rotor.array
     if rotor.shape[0] != len(kind):  # a structure built without armature
         rotor = np.zeros((len(kind), 3), bool)
+    soft = structure.joint_soft_limits.array
+    if soft.shape[0] != len(kind):  # a structure built without soft limits
+        soft = np.zeros(len(kind), bool)
     return JointFlags(
         world_a=structure.joint_body_a.array == world,
         world_b=structure.joint_body_b.array == world,
@@ -142,6 +146,7 @@ def flags(structure: Structure) -> JointFlags:
         rotor_slider=rotor[:, 0] & (kind == SLIDER),
         rotor_ball=rotor[:, 0] & (kind == BALL),
         rotor_euler=rotor & euler[:, None],
+        soft_limits=soft,
     )
 
 
@@ -211,8 +216,7 @@ def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_r
         (angle, travel, euler, relative) = zip(*(_coordinates(joint, flag, p, kinds) for p in (after, now, before)),
                                                 strict=True)  # fmt: skip
 
-        def wrapped(x):
-            return math.safe_atan2(jnp.sin(x), jnp.cos(x))
+        wrapped = math.wrap_angle
 
         def turned(later, earlier, pair):  # world rotation vector from earlier to later (relative rotations)
             return math.quat_rotate(pair.quat_a, math.quat_log(math.quat_multiply(later, math.quat_conjugate(earlier))))
@@ -335,6 +339,15 @@ def project(
     hold_gap, hold_arm_a, hold_arm_b = joint_points(joint, flag, pair, *pair.current_quats())
     hold = row.point_hold(pair, hold_arm_a, hold_arm_b, hold_gap, ~(flag.slider | flag.planar))
     hard = lambda active, inequality=False: row.rigid(xi, alpha, active, inequality)  # noqa: E731
+    # Limits: rigid rows, or where the joint's limits are soft (`Joints.limit_stiffness`) a spring and
+    # damper per unit of the row's effective mass, stepped with the response with the point held
+    # (the joint coordinate's own effective mass, not the turn of one body about its centre).
+    if "soft_limits" in rows:
+        soft = (flag.soft_limits, joint.limit_stiffness * h**2, joint.limit_damping * h)
+        limit_rule = lambda active: row.soft_limit(xi, alpha, active, *soft)  # noqa: E731
+        limit_held = flag.soft_limits
+    else:
+        limit_rule, limit_held = lambda active: hard(active, inequality=True), False  # noqa: E731
 
     # Armature: MuJoCo's 1/2 armature qdot^2 on the joint coordinate q, in the step's variational
     # form 1/2 armature (q(X* + dX) - q_rotor)^2 / h^2, q_rotor where the rotor's own inertia
@@ -368,7 +381,7 @@ def project(
             return error, row.spring(xi, active, joint.armature[k], 0.0)
 
         def wrapped(angle, reference):
-            return math.safe_atan2(jnp.sin(angle - reference), jnp.cos(angle - reference))
+            return math.wrap_angle(angle - reference)
 
     if "rotor_hinge" in rows:
         reference = hinge_angle(joint, still)[0] if target.reference is None else target.reference[0]
@@ -406,8 +419,7 @@ def project(
     torque_bound = joint.drive_max_torque * h**2
     if "hinge_drive" in rows:
         angle, axis = hinge_angle(joint, pair)
-        offset = angle - target.drive[0]
-        error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
+        error = math.wrap_angle(angle - target.drive[0])
         pair, lam[DRIVE], hold = row.angular_row(
             pair, -axis, error, lam[DRIVE],
             row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h, hold,
@@ -427,8 +439,7 @@ def project(
         # MuJoCo's per-dof stiffness and damping). The universal's third row has g = 0: no step.
         for k in range(3):
             angles, directions = euler_angles_now(pair), euler_directions
-            offset = angles[k] - target.drive[k]
-            error = math.safe_atan2(jnp.sin(offset), jnp.cos(offset))
+            error = math.wrap_angle(angles[k] - target.drive[k])
             pair, lam[DRIVE + k], hold = row.angular_row(
                 pair, -directions[k], error, lam[DRIVE + k],
                 row.spring(xi, flag.euler_drive, joint.axis_stiffness[k] * h**2, joint.axis_damping[k] * h,
@@ -493,10 +504,10 @@ def project(
     # one (`_nearer_bound`).
     if "has_angle_limits" in rows:
         angle, axis = hinge_angle(joint, pair)
-        sign, error, upper_row = _nearer_bound(angle, joint.lower, joint.upper)
+        sign, error, upper_row = _nearer_bound(angle, joint.lower, joint.upper, periodic=True)
         multiplier = jnp.where(upper_row, lam[ANGLE_UPPER], lam[ANGLE_LOWER])
         pair, multiplier, hold = row.angular_row(
-            pair, sign * axis, error, multiplier, hard(flag.has_angle_limits, inequality=True), hold=hold
+            pair, sign * axis, error, multiplier, limit_rule(flag.has_angle_limits), h, hold, limit_held
         )
         lam[ANGLE_LOWER] = jnp.where(upper_row, lam[ANGLE_LOWER], multiplier)
         lam[ANGLE_UPPER] = jnp.where(upper_row, multiplier, lam[ANGLE_UPPER])
@@ -508,7 +519,7 @@ def project(
             *row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
         )
         pair, lam[CONE], hold = row.angular_row(
-            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], hard(flag.has_cone, inequality=True), hold=hold
+            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], limit_rule(flag.has_cone), h, hold, limit_held
         )
 
     # Universal / gimbal hinge limits: t_k in [lower_k, upper_k] by two one-sided rows per hinge
@@ -517,10 +528,10 @@ def project(
     if "euler_limited" in rows:
         for k in range(3):
             angles, directions = euler_angles_now(pair), euler_directions
-            sign, error, upper_row = _nearer_bound(angles[k], joint.axis_lower[k], joint.axis_upper[k])
+            sign, error, upper_row = _nearer_bound(angles[k], joint.axis_lower[k], joint.axis_upper[k], periodic=True)
             multiplier = jnp.where(upper_row, lam[EULER_UPPER + k], lam[EULER_LOWER + k])
             pair, multiplier, hold = row.angular_row(
-                pair, sign * directions[k], error, multiplier, hard(flag.euler_limited[k], inequality=True), hold=hold
+                pair, sign * directions[k], error, multiplier, limit_rule(flag.euler_limited[k]), h, hold, limit_held
             )
             lam[EULER_LOWER + k] = jnp.where(upper_row, lam[EULER_LOWER + k], multiplier)
             lam[EULER_UPPER + k] = jnp.where(upper_row, multiplier, lam[EULER_UPPER + k])
@@ -532,7 +543,7 @@ def project(
         sign, error, upper_row = _nearer_bound(travel, joint.lower, joint.upper)
         multiplier = jnp.where(upper_row, lam[TRAVEL_UPPER], lam[TRAVEL_LOWER])
         pair, multiplier = row.positional_row(
-            pair, sign * axis, arm_a, arm_b, error, multiplier, hard(flag.has_travel_limits, inequality=True)
+            pair, sign * axis, arm_a, arm_b, error, multiplier, limit_rule(flag.has_travel_limits), h
         )
         lam[TRAVEL_LOWER] = jnp.where(upper_row, lam[TRAVEL_LOWER], multiplier)
         lam[TRAVEL_UPPER] = jnp.where(upper_row, multiplier, lam[TRAVEL_UPPER])
@@ -562,7 +573,7 @@ def project(
     return dx, dtheta, _restacked(multipliers, lam, untouched)
 
 
-def _nearer_bound(value, lower, upper):
+def _nearer_bound(value, lower, upper, periodic=True):
     """The one of the two limit rows lower <= value <= upper that can act: (sign of its direction,
     -1 for the lower row and +1 for the upper, its error (value - lower or upper - value), True
     where it is the upper row).
@@ -571,8 +582,16 @@ def _nearer_bound(value, lower, upper):
     whose error is positive never steps. With lower <= upper at most one error is negative, the
     one of the nearer bound: projecting that row alone moves the bodies exactly as projecting
     both in turn, with half the rows in the compiled sweep (each of which the reverse pass keeps
-    residuals for)."""
-    below, above = value - lower, upper - value
+    residuals for). periodic: `value` is an angle, measured from the middle of the range and
+    wrapped, so that an angle pushed past a bound keeps the error of that bound until it is half
+    the excluded arc beyond it (measured from zero and wrapped at +-pi, a knee bent 20 degrees past
+    a -160 degree limit read as +160, beyond its upper limit, and was thrown back the long way)."""
+    if periodic:
+        middle, half = 0.5 * (lower + upper), 0.5 * (upper - lower)
+        offset = math.wrap_angle(value - middle)
+        below, above = offset + half, half - offset
+    else:
+        below, above = value - lower, upper - value
     upper_row = above < below
     return jnp.where(upper_row, 1.0, -1.0), jnp.where(upper_row, above, below), upper_row
 

@@ -17,6 +17,10 @@ kg m^2 for angular ones) and moves the bodies by dX += M~^-1 J^T d lambda (52). 
           c(X*) = c(X^t) + J h V*, the velocity term gains the "1 +" of (108)-(109) that XPBD's
           gamma lacks. The clamp |lambda| <= bound h^2 is the torque limit (114).
   speed   a motor: drift = target speed h, with |lambda| <= max force h^2 (SI 2.3.6, 2.4.6).
+  soft limit  a one-sided limit row that is rigid, or (where the joint's limits are soft) the
+          spring rule with k = omega^2 / w and nu = 2 zeta omega / w: a spring and damper per unit
+          of the row's effective mass, MuJoCo's solref (timeconst, dampratio) with omega =
+          1 / (timeconst dampratio); it pushes only while c < 0 (`soft_limit`).
 
 A joint's point constraint is not a row but a block of three: the vector error c = p_a - p_b
 (DBD (64)) with J = (1, -[arm_a]x, -1, [arm_b]x) (65), solved at once with the 3x3 effective
@@ -147,7 +151,8 @@ class Rule(NamedTuple):
     relaxation xi, regularization alpha, active (bool). inequality (bool): rigid rows only push.
     stiffness_h2 = k h^2 and damping_h = nu h for springs (both 0 for a rigid row; `spring`
     switches to the spring rule). bound: |lambda| <= bound (inf for none). speed_h: a motor's
-    target drift (target speed times h); `speed` switches to the motor rule.
+    target drift (target speed times h); `speed` switches to the motor rule. `soft` switches to
+    the limit rule of `soft_limit`, a spring per unit effective mass where `softened`.
     """
 
     relaxation: jnp.ndarray
@@ -160,6 +165,8 @@ class Rule(NamedTuple):
     speed: bool = False
     speed_h: jnp.ndarray | float = 0.0
     bound: jnp.ndarray | float = jnp.inf
+    soft: bool = False
+    softened: jnp.ndarray | bool = False
 
 
 def rigid(relaxation, regularization, active, inequality=False) -> Rule:
@@ -170,6 +177,13 @@ def rigid(relaxation, regularization, active, inequality=False) -> Rule:
 def spring(relaxation, active, stiffness_h2, damping_h, bound=jnp.inf) -> Rule:
     """An implicit spring/damper row (DBD 8.1, 9): stiffness k h^2, damping nu h, |lambda| <= bound."""
     return Rule(relaxation, 0.0, active, spring=True, stiffness_h2=stiffness_h2, damping_h=damping_h, bound=bound)
+
+
+def soft_limit(relaxation, regularization, active, softened, stiffness_h2, damping_h) -> Rule:
+    """A one-sided limit row: where `softened` ((), bool) is False the rigid inequality rule, else
+    an implicit spring and damper per unit of the row's effective mass, stiffness_h2 = omega^2 h^2
+    and damping_h = 2 zeta omega h (`Joints.limit_stiffness` and `limit_damping` times h^2 and h)."""
+    return Rule(relaxation, regularization, active, True, False, stiffness_h2, damping_h, soft=True, softened=softened)
 
 
 def motor(relaxation, active, speed_h, bound) -> Rule:
@@ -183,6 +197,21 @@ def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
     error: c at X* + dX. drift: J (h V* + dX) (only the spring and motor rules read it).
     inverse_mass: w = J M~^-1 J^T. multiplier: lambda so far this substep.
     """
+    if rule.soft:  # a limit: rigid, or where softened the spring rule with k = omega^2 / w, nu = 2 zeta omega / w
+        share = 1.0 / (1.0 + rule.stiffness_h2 + rule.damping_h)
+        error_weight = jnp.where(rule.softened, rule.stiffness_h2 * share, 1.0)
+        drift_weight = jnp.where(rule.softened, rule.damping_h * share, 0.0)
+        multiplier_weight = jnp.where(rule.softened, share * inverse_mass, 0.0)
+        denominator = inverse_mass + error_weight * rule.regularization
+        residual = (multiplier_weight * multiplier + error_weight * (error + rule.regularization * multiplier)
+                    + drift_weight * drift)  # fmt: skip
+        solvable = rule.active & (denominator > 0.0)
+        step = -rule.relaxation * residual / jnp.where(solvable, denominator, 1.0)
+        # Rigid: the increments only push, DBD (83). Soft: the spring only pushes, and lets go
+        # where the row is not past its bound (MuJoCo's limit is active only there).
+        pushed = jnp.where(error < 0.0, jnp.maximum(multiplier + step, 0.0), 0.0)
+        step = jnp.where(rule.softened, pushed - multiplier, jnp.maximum(step, 0.0))
+        return jnp.where(solvable, step, 0.0)
     if rule.spring:
         compliance = rule.stiffness_h2 + rule.damping_h
         denominator = 1.0 + compliance * inverse_mass
@@ -246,7 +275,7 @@ def positional_row(
     torque_b = math.cross(arm_b, direction)
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, torque_a, torque_b, 1.0)  # (57) along the direction, (56)
     drift = 0.0
-    if rule.spring or rule.speed:
+    if rule.spring or rule.speed or rule.soft:
         drift = (
             math.dot(direction, h * (pair.vel_a - pair.vel_b) + (pair.dx_a - pair.dx_b))
             + math.dot(torque_a, h * pair.ang_vel_a + pair.dtheta_a)
@@ -323,11 +352,15 @@ def angular_row(
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     if hold is not None:
         point_impulse, gap = _point_impulses(hold, turn_a, turn_b)
-        if held_step:  # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
+        if held_step is True:  # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
             inverse_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
             error = error + math.dot(point_impulse, hold.gap)  # the slope along the held direction
+        elif held_step is not False:  # per joint (an array): soft limits step with the held response
+            held_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
+            inverse_mass = jnp.where(held_step, held_mass, inverse_mass)
+            error = jnp.where(held_step, error + math.dot(point_impulse, hold.gap), error)
     drift = 0.0
-    if rule.spring or rule.speed:
+    if rule.spring or rule.speed or rule.soft:
         drift = math.dot(direction, h * (pair.ang_vel_a - pair.ang_vel_b) + (pair.dtheta_a - pair.dtheta_b))
     step = multiplier_step(rule, error, drift, inverse_mass, multiplier)
     moved = pair._replace(

@@ -298,9 +298,7 @@ def _scalar_rows_in_use(rows: frozenset[str]) -> list[int]:
     return list(dict.fromkeys(index for name, index in _SCALAR_ROWS if name in rows))
 
 
-def _wrapped(angle):
-    """angle wrapped to (-pi, pi]."""
-    return math.safe_atan2(jnp.sin(angle), jnp.cos(angle))
+_wrapped = math.wrap_angle
 
 
 def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets, start: jnp.ndarray, pair: BodyPair,
