@@ -116,7 +116,8 @@ def test_rigid_limits_hold_the_bound_under_the_same_torque(float64):
     assert _hinge_angles(model, trajectory)[-1] == pytest.approx(0.3, abs=1e-4)
 
 
-def test_a_hinge_turned_past_pi_beyond_its_bound_is_pushed_back_to_that_bound(float64):
+@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+def test_a_hinge_turned_past_pi_beyond_its_bound_is_pushed_back_to_that_bound(float64, solver):
     # Limits (-3.0, -0.5); the rod starts turned to -3.3 rad, 0.3 past the lower bound and beyond
     # -pi. Measured from zero and wrapped, -3.3 reads +2.98, 3.48 past the upper bound, and the rod
     # was driven back the long way, through the excluded arc; measured from the middle of the range
@@ -124,7 +125,7 @@ def test_a_hinge_turned_past_pi_beyond_its_bound_is_pushed_back_to_that_bound(fl
     builder = dbd.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     rod = builder.add_body(pos=(0.5, 0.0, 0.0), mass=1.0, inertia=(0.01, 0.01, 0.01))
     builder.add_hinge_joint(dbd.WORLD, rod, anchor=(0.0, 0.0, 0.0), axis=(0.0, 1.0, 0.0), limits=(-3.0, -0.5))
-    model = builder.finalize(dt=1e-3, iterations=8)
+    model = builder.finalize(dt=1e-3, iterations=8, solver=solver)
     turn = dm.quat_exp(jnp.array([[0.0, -3.3, 0.0]]))  # about the hinge, through the origin
     state = dbd.init(model)
     state = dataclasses.replace(state, pos=dm.quat_rotate(turn, state.pos), quat=dm.quat_multiply(turn, state.quat))

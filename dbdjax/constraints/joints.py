@@ -573,25 +573,30 @@ def project(
     return dx, dtheta, _restacked(multipliers, lam, untouched)
 
 
-def _nearer_bound(value, lower, upper, periodic=True):
+def limit_errors(value, lower, upper, periodic=False):
+    """(value - lower, upper - value): how far inside each bound `value` is (negative: past it).
+    periodic: `value` is an angle, measured from the middle of the range and wrapped there, so that
+    an angle pushed past a bound keeps that bound's error until it is half the excluded arc beyond
+    it (measured from zero and wrapped at +-pi, a knee bent 20 degrees past a -160 degree limit
+    read +160, past its upper limit, and was driven back the long way, through the excluded arc)."""
+    if not periodic:
+        return value - lower, upper - value
+    middle, half = 0.5 * (lower + upper), 0.5 * (upper - lower)
+    offset = math.wrap_angle(value - middle)
+    return offset + half, half - offset
+
+
+def _nearer_bound(value, lower, upper, periodic=False):
     """The one of the two limit rows lower <= value <= upper that can act: (sign of its direction,
     -1 for the lower row and +1 for the upper, its error (value - lower or upper - value), True
-    where it is the upper row).
+    where it is the upper row). periodic: an angle (`limit_errors`).
 
     Both rows only push (DBD (83)) and their multipliers start the substep at zero, so a row
     whose error is positive never steps. With lower <= upper at most one error is negative, the
     one of the nearer bound: projecting that row alone moves the bodies exactly as projecting
     both in turn, with half the rows in the compiled sweep (each of which the reverse pass keeps
-    residuals for). periodic: `value` is an angle, measured from the middle of the range and
-    wrapped, so that an angle pushed past a bound keeps the error of that bound until it is half
-    the excluded arc beyond it (measured from zero and wrapped at +-pi, a knee bent 20 degrees past
-    a -160 degree limit read as +160, beyond its upper limit, and was thrown back the long way)."""
-    if periodic:
-        middle, half = 0.5 * (lower + upper), 0.5 * (upper - lower)
-        offset = math.wrap_angle(value - middle)
-        below, above = offset + half, half - offset
-    else:
-        below, above = value - lower, upper - value
+    residuals for)."""
+    below, above = limit_errors(value, lower, upper, periodic)
     upper_row = above < below
     return jnp.where(upper_row, 1.0, -1.0), jnp.where(upper_row, above, below), upper_row
 

@@ -367,7 +367,7 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         scalar[MOTOR] = motor
     if "has_angle_limits" in rows:  # SI (108)-(121): C_min = angle - lower, C_max = upper - angle
         active = flag.has_angle_limits
-        lower, upper = angle - joint.lower, joint.upper - angle
+        lower, upper = joints.limit_errors(angle, joint.lower, joint.upper, periodic=True)
         scalar[ANGLE_LOWER] = (zero3, axle, axle, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
         scalar[ANGLE_UPPER] = (zero3, -axle, -axle, baumgarte_bias(upper, beta, h, True), 0.0, inf, active, 0.0)
     if "has_cone" in rows:  # C = cone limit - angle between the twist axes (DBD (81)), >= 0
@@ -404,7 +404,7 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     if "euler_limited" in rows:
         for k in range(3):
             active = flag.euler_limited[k]
-            lower, upper = angles[k] - joint.axis_lower[k], joint.axis_upper[k] - angles[k]
+            lower, upper = joints.limit_errors(angles[k], joint.axis_lower[k], joint.axis_upper[k], periodic=True)
             g = directions[k]
             scalar[EULER_LOWER + k] = (zero3, g, g, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
             scalar[EULER_UPPER + k] = (zero3, -g, -g, baumgarte_bias(upper, beta, h, True), 0.0, inf, active, 0.0)
