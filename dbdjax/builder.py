@@ -726,7 +726,9 @@ class ModelBuilder:
         A joint built past a bound eases back over about `time_constant` instead of being snapped
         back within one step; a limit hit at speed is overrun by about speed x time_constant.
         time_constant: s, > 0. damping_ratio: > 0 (1: critically damped). Limits stay rigid by
-        default. The impulse solver keeps them rigid (its bias already corrects over several steps).
+        default. Both solvers: the DBD solver's `rows.soft_limit`, the impulse solver's soft
+        velocity rows (`velocity_rows.scalar_rows(per_mass=...)`); a soft limit acts only while
+        its joint is past the bound (no speculative row stops the joint at it).
         """
         label, record = self._actuated_joint("set_limit_softness", joint)
         if not (record.has_limits or record.has_cone or any(record.axis_limited)):

@@ -94,8 +94,9 @@ def safe_atan2(y: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
 
 
 def wrap_angle(angle: jnp.ndarray) -> jnp.ndarray:
-    """angle (rad) wrapped to (-pi, pi], with gradient 1 everywhere."""
-    return safe_atan2(jnp.sin(angle), jnp.cos(angle))
+    """angle (rad) wrapped to [-pi, pi], with gradient 1 (whole turns subtracted: no sine, cosine or
+    arctangent, which the solver's sweeps would evaluate in every limit and drive row)."""
+    return angle - (2.0 * jnp.pi) * jnp.round(angle / (2.0 * jnp.pi))
 
 
 def quat_identity(shape: tuple[int, ...] = ()) -> jnp.ndarray:
