@@ -718,6 +718,12 @@ class ModelBuilder:
             per_axis[: record.num_axes] = [self._non_negative(v, f"{what}: {field}") for v in values]
             setattr(record, f"axis_{field}", per_axis)
 
+    def joint_limited(self, joint: int) -> bool:
+        """Whether a joint has any limit: a hinge's or slider's range, a ball's cone or twist, a
+        universal or gimbal joint's limit on one of its hinges."""
+        _, record = self._actuated_joint("joint_limited", joint)
+        return bool(record.has_limits or record.has_cone or any(record.axis_limited))
+
     def set_limit_softness(self, joint: int, time_constant: float, damping_ratio: float = 1.0) -> None:
         """Make a joint's limits soft, as MuJoCo's are (MJCF solreflimit = (time_constant,
         damping_ratio)): past a bound, the limit row is an implicit spring and damper per unit of
@@ -731,7 +737,7 @@ class ModelBuilder:
         its joint is past the bound (no speculative row stops the joint at it).
         """
         label, record = self._actuated_joint("set_limit_softness", joint)
-        if not (record.has_limits or record.has_cone or any(record.axis_limited)):
+        if not self.joint_limited(joint):
             raise ValueError(f"set_limit_softness: {label} has no limits")
         time_constant = _scalar(time_constant, f"set_limit_softness on {label}: time_constant")
         damping_ratio = _scalar(damping_ratio, f"set_limit_softness on {label}: damping_ratio")

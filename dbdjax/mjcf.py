@@ -229,8 +229,9 @@ def load_mjcf(path_or_xml: str | os.PathLike, soft_limits: bool = True, **finali
         refsafe = not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_REFSAFE
         softened = set()
         for j in range(m.njnt):
-            if m.jnt_limited[j] and j in joint_of and joint_of[j][0] not in softened:
-                ours = joint_of[j][0]
+            ours = joint_of[j][0] if j in joint_of else None
+            # (a range of a full turn or more maps to no limit at all: nothing to soften)
+            if m.jnt_limited[j] and ours is not None and ours not in softened and builder.joint_limited(ours):
                 builder.set_limit_softness(ours, *_limit_softness(m, j, dt, refsafe))
                 softened.add(ours)
 

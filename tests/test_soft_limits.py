@@ -200,6 +200,22 @@ def test_gradient_through_a_soft_limit_matches_finite_differences(float64):
     assert relative_error(gradient, numeric) < 1e-4
 
 
+def test_mjcf_limits_map_solreflimit_and_a_full_turn_range_maps_to_no_limit():
+    xml = """<mujoco><option timestep="0.004"/><worldbody>
+    <body><joint name="wide" type="hinge" axis="0 1 0" range="-200 200" limited="true"/>
+    <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.05"/>
+    <body pos="0.5 0 0"><joint name="knee" type="hinge" axis="0 1 0" range="-90 0" solreflimit="0.005 0.5"/>
+    <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.05"/></body></body></worldbody></mujoco>"""
+    model = dbd.load_mjcf(xml)
+    assert list(model.structure.joint_soft_limits.array) == [False, True]
+    # the time constant 0.005 s is below 2 dt: MuJoCo's refsafe raises it to 0.008 s
+    omega = 1.0 / (0.008 * 0.5)
+    assert float(model.joints.limit_stiffness[1]) == pytest.approx(omega**2)
+    assert float(model.joints.limit_damping[1]) == pytest.approx(2.0 / 0.008)
+    rigid = dbd.load_mjcf(xml, soft_limits=False)
+    assert not rigid.structure.joint_soft_limits.array.any()
+
+
 def test_set_limit_softness_refuses_a_joint_without_limits_and_non_positive_parameters():
     builder = dbd.ModelBuilder()
     rod = builder.add_body(pos=(0.5, 0.0, 0.0), mass=1.0, inertia=(0.01, 0.01, 0.01))

@@ -346,8 +346,9 @@ def angular_row(
     mu . g a row that acts while the point is still open (the first sweep of a substep, the point
     projected last) steps as if it were closed, and the point block then undoes part of the turn:
     a rotor of armature 40-120x its joint's inertia (Brax's ant) fed energy in that way, 6.7 J ->
-    2,352 J in 20 steps at 4 substeps x 4 iterations. Returns the moved pair, the new multiplier
-    and the hold with the point impulse it added.
+    2,352 J in 20 steps at 4 substeps x 4 iterations. held_step may also be a () bool array, per
+    joint (soft limits: `joints.project`). Returns the moved pair, the new multiplier and the hold
+    with the point impulse it added.
     """
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     if hold is not None:
