@@ -100,7 +100,7 @@ def test_soft_limit_gap_to_mujoco_shrinks_with_the_timestep(float64, solref, sol
 
 @pytest.mark.parametrize("solver", ["dbd", "impulse"])
 def test_a_soft_limit_sags_under_a_steady_torque_by_torque_over_omega_squared_inertia(float64, solver):
-    # A rod on a hinge resting on its soft lower bound under gravity: the limit is a spring of
+    # A rod on a hinge resting on its soft upper bound under gravity: the limit is a spring of
     # stiffness omega^2 I per unit angle, I the rod's inertia about the hinge, so it sags past the
     # bound by m g l / (omega^2 I) (the damper is idle at rest).
     builder = dbd.ModelBuilder(gravity=(0.0, 0.0, -9.81))
