@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 import dbdjax as dbd
+from dbdjax.constraints import joints
+from dbdjax.model import GIMBAL, HINGE, UNIVERSAL
 
 LINK_LENGTH = 0.1
 LINK_MASS = 0.1
@@ -100,3 +104,30 @@ def ragdoll(height: float = 1.2, spin=(1.0, 2.0, 0.5), drives: bool = False, **f
             b.add_drive(joint, stiffness=40.0, damping=4.0, max_torque=60.0)
     b.add_plane(friction=0.8)
     return b.finalize(**finalize)
+
+
+def hinge_angles(model, quat):
+    """(T, J, 3) joint coordinates along a trajectory's orientations (T, N, 4): a hinge's angle
+    (`joints.hinge_angle`'s twist) in column 0, a universal or gimbal joint's hinge angles
+    (`math.euler_angles`, the universal's third 0); other kinds 0."""
+    structure = model.structure
+    kind = structure.joint_kind.array
+    identity = jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], quat.dtype), quat.shape[:-2] + (1, 4))
+    padded = jnp.concatenate([quat, identity], axis=-2)
+    quat_a, quat_b = padded[..., structure.joint_body_a.array, :], padded[..., structure.joint_body_b.array, :]
+
+    def one(joint, a, b, universal):
+        hinge = dbd.math.quat_twist_angle(joints.relative_rotation(joint, a, b), joint.local_axis_a)
+        axes_a = dbd.math.quat_rotate(a[None], joint.local_axes_a)
+        axes_b = dbd.math.quat_rotate(b[None], joint.local_axes_b)
+        euler, _ = dbd.math.euler_angles(axes_a, axes_b, universal)
+        return hinge, euler
+
+    per_joint = jax.vmap(one, in_axes=(0, 0, 0, 0))
+    hinge, euler = jax.vmap(per_joint, in_axes=(None, 0, 0, None))(model.joints, quat_a, quat_b,
+                                                                  jnp.asarray(kind == UNIVERSAL))  # fmt: skip
+    zero = jnp.zeros_like(hinge)
+    is_hinge = jnp.asarray(kind == HINGE)[:, None]
+    angles = jnp.where(is_hinge, jnp.stack([hinge, zero, zero], -1), euler)
+    return np.asarray(jnp.where(jnp.asarray((kind == HINGE) | (kind == UNIVERSAL) | (kind == GIMBAL))[:, None],
+                                angles, 0.0))  # fmt: skip

@@ -15,8 +15,6 @@ from derivatives import central_difference, quick_jit, relative_error
 
 import dbdjax as dbd
 from dbdjax import diagnostics
-from dbdjax.constraints import joints
-from dbdjax.model import GIMBAL, HINGE, UNIVERSAL
 from dbdjax.solvers import impulse
 
 GRAVITY = 9.81
@@ -370,33 +368,6 @@ def test_baumgarte_factor_is_checked_and_kept_per_joint():
 EULER_LIMIT = (-0.1, 0.1)
 
 
-def hinge_angles(model, quat):
-    """(T, J, 3) joint coordinates along a trajectory's orientations (T, N, 4): a hinge's angle
-    (`joints.hinge_angle`'s twist) in column 0, a universal or gimbal joint's hinge angles
-    (`math.euler_angles`, the universal's third 0); other kinds 0."""
-    structure = model.structure
-    kind = structure.joint_kind.array
-    identity = jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], quat.dtype), quat.shape[:-2] + (1, 4))
-    padded = jnp.concatenate([quat, identity], axis=-2)
-    quat_a, quat_b = padded[..., structure.joint_body_a.array, :], padded[..., structure.joint_body_b.array, :]
-
-    def one(joint, a, b, universal):
-        hinge = dbd.math.quat_twist_angle(joints.relative_rotation(joint, a, b), joint.local_axis_a)
-        axes_a = dbd.math.quat_rotate(a[None], joint.local_axes_a)
-        axes_b = dbd.math.quat_rotate(b[None], joint.local_axes_b)
-        euler, _ = dbd.math.euler_angles(axes_a, axes_b, universal)
-        return hinge, euler
-
-    per_joint = jax.vmap(one, in_axes=(0, 0, 0, 0))
-    hinge, euler = jax.vmap(per_joint, in_axes=(None, 0, 0, None))(model.joints, quat_a, quat_b,
-                                                                  jnp.asarray(kind == UNIVERSAL))  # fmt: skip
-    zero = jnp.zeros_like(hinge)
-    is_hinge = jnp.asarray(kind == HINGE)[:, None]
-    angles = jnp.where(is_hinge, jnp.stack([hinge, zero, zero], -1), euler)
-    return np.asarray(jnp.where(jnp.asarray((kind == HINGE) | (kind == UNIVERSAL) | (kind == GIMBAL))[:, None],
-                                angles, 0.0))  # fmt: skip
-
-
 @pytest.fixture(scope="module", params=["universal", "gimbal"])
 def swinging_euler_joint(request):
     """A plate on a universal joint to the world (axes x on the world, y on the plate) or a gimbal
@@ -417,7 +388,7 @@ def swinging_euler_joint(request):
                            limits=[limits[0], limits[1], None])  # fmt: skip
     model = b.finalize(dt=1 / 60, substeps=2, iterations=8, solver="impulse")
     _, trajectory = rollout(model, 120)
-    return kind, model, trajectory, hinge_angles(model, trajectory.quat)[:, 0], limits, swing
+    return kind, model, trajectory, scenes.hinge_angles(model, trajectory.quat)[:, 0], limits, swing
 
 
 def test_universal_joint_on_impulse_keeps_its_axes_perpendicular_and_its_point_closed(swinging_euler_joint):
@@ -567,7 +538,7 @@ def test_humanoid_joint_angles_on_impulse_follow_mujoco_over_0_2_s():
         low, high = model.control_range[:, 0], model.control_range[:, 1]
         controls = np.random.default_rng(0).uniform(low, high, size=(steps, model.num_controls))
         _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), jnp.asarray(controls, jnp.float32))
-        angles[solver] = hinge_angles(model, trajectory.quat)
+        angles[solver] = scenes.hinge_angles(model, trajectory.quat)
     m = mujoco.MjModel.from_xml_path(str(path))
     m.opt.timestep = dt
     d = mujoco.MjData(m)

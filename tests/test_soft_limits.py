@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scenes
 from derivatives import central_difference, quick_jit, relative_error
 
 import dbdjax as dbd
@@ -27,13 +28,6 @@ def _pendulum_xml(dt: float, solref: str) -> str:
     <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.05"/></body></worldbody></mujoco>"""
 
 
-def _hinge_angles(model, trajectory, axis=(0.0, 1.0, 0.0)) -> np.ndarray:
-    """(T,) rad: body 0's rotation from its build pose about world `axis` (a hinge to the world)."""
-    start = dbd.init(model).quat[0]
-    relative = dm.quat_multiply(trajectory.quat[:, 0], dm.quat_conjugate(start)[None])
-    return np.asarray(2.0 * jnp.arctan2(relative[:, 1:] @ jnp.asarray(axis), relative[:, 0]))
-
-
 def _one_sided_oscillator(time_constant: float, damping_ratio: float, violation: float, times: np.ndarray):
     """The violation r(t) of a limit that pushes with r'' = max(0, -(omega^2 r + 2 zeta omega r'))
     while r < 0 (omega = 1 / (time_constant damping_ratio)), from rest; fine explicit steps."""
@@ -49,7 +43,7 @@ def _one_sided_oscillator(time_constant: float, damping_ratio: float, violation:
     return np.array(out)
 
 
-def _gap_to_mujoco(dt: float, solref: str, seconds: float, solver: str = "dbd") -> tuple[float, np.ndarray, np.ndarray]:
+def _gap_to_mujoco(dt: float, solref: str, seconds: float) -> tuple[float, np.ndarray, np.ndarray]:
     """(max |q - q_mujoco| over `seconds`, our q, the sample times), both stepped at dt."""
     xml = _pendulum_xml(dt, solref)
     m = mujoco.MjModel.from_xml_string(xml)
@@ -59,28 +53,24 @@ def _gap_to_mujoco(dt: float, solref: str, seconds: float, solver: str = "dbd") 
     for _ in range(steps):
         mujoco.mj_step(m, d)
         theirs.append(d.qpos[0])
-    model = dbd.load_mjcf(xml, iterations=8, solver=solver)
+    model = dbd.load_mjcf(xml, iterations=8)
     _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), jnp.zeros((steps, 0)))
-    ours = _hinge_angles(model, trajectory)
+    ours = scenes.hinge_angles(model, trajectory.quat)[:, 0, 0]
     return float(np.max(np.abs(ours - np.array(theirs)))), ours, dt * np.arange(1, steps + 1)
 
 
 # measured largest |q - q_mujoco| over 0.3 s at dt = 1 ms (MuJoCo's own Euler step and ours differ to
 # first order; the gap fell 4x at dt = 0.25 ms: 0.0084, 0.0276, 0.0014 rad)
 SOLREFS = {"0.02 1": 3.4e-2, "0.02 0.5": 1.05e-1, "0.05 1": 5.5e-3}
-# The impulse solver's, measured likewise (at 0.25 ms: 0.0082, 0.0230, 0.0013 rad).
-IMPULSE_SOLREFS = {"0.02 1": 3.3e-2, "0.02 0.5": 9.0e-2, "0.05 1": 5.5e-3}
-# measured largest |q - r(t)| over the first 0.1 s against the one-sided oscillator, both solvers
-# (dbd: 0.0063, 0.0499, 0.0006 rad; impulse: 0.0063, 0.0480, 0.0006)
+# measured largest |q - r(t)| over the first 0.1 s against the one-sided oscillator (0.0063, 0.0499,
+# 0.0006 rad)
 ODE_GAPS = {"0.02 1": 7e-3, "0.02 0.5": 5.5e-2, "0.05 1": 7e-4}
 
 
-@pytest.mark.parametrize("solver", ["dbd", "impulse"])
 @pytest.mark.parametrize("solref", list(SOLREFS))
-def test_a_pose_built_past_a_soft_limit_eases_back_as_mujoco_does(float64, solref, solver):
-    bounds = SOLREFS if solver == "dbd" else IMPULSE_SOLREFS
-    gap, ours, times = _gap_to_mujoco(1e-3, solref, 0.3, solver)
-    assert gap < bounds[solref]
+def test_a_pose_built_past_a_soft_limit_eases_back_as_mujoco_does(float64, solref):
+    gap, ours, times = _gap_to_mujoco(1e-3, solref, 0.3)
+    assert gap < SOLREFS[solref]
     # and both follow the one-sided oscillator MuJoCo's soft limit is, while inside the range's
     # first 0.1 s (the rod then coasts on towards the upper bound)
     time_constant, damping_ratio = (float(v) for v in solref.split())
@@ -90,16 +80,14 @@ def test_a_pose_built_past_a_soft_limit_eases_back_as_mujoco_does(float64, solre
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("solver", ["dbd", "impulse"])
 @pytest.mark.parametrize("solref", list(SOLREFS))
-def test_soft_limit_gap_to_mujoco_shrinks_with_the_timestep(float64, solref, solver):
+def test_soft_limit_gap_to_mujoco_shrinks_with_the_timestep(float64, solref):
     # a modelling error would stay as dt shrinks; the two Euler steps' O(dt) difference shrinks 4x
-    fine, coarse = (_gap_to_mujoco(dt, solref, 0.3, solver)[0] for dt in (2.5e-4, 1e-3))
+    fine, coarse = (_gap_to_mujoco(dt, solref, 0.3)[0] for dt in (2.5e-4, 1e-3))
     assert fine < 0.35 * coarse
 
 
-@pytest.mark.parametrize("solver", ["dbd", "impulse"])
-def test_a_soft_limit_sags_under_a_steady_torque_by_torque_over_omega_squared_inertia(float64, solver):
+def test_a_soft_limit_sags_under_a_steady_torque_by_torque_over_omega_squared_inertia(float64):
     # A rod on a hinge resting on its soft upper bound under gravity: the limit is a spring of
     # stiffness omega^2 I per unit angle, I the rod's inertia about the hinge, so it sags past the
     # bound by m g l / (omega^2 I) (the damper is idle at rest).
@@ -107,9 +95,9 @@ def test_a_soft_limit_sags_under_a_steady_torque_by_torque_over_omega_squared_in
     rod = builder.add_body(pos=(0.5, 0.0, 1.0), mass=1.0, inertia=(0.01, 0.01, 0.01))
     hinge = builder.add_hinge_joint(dbd.WORLD, rod, anchor=(0.0, 0.0, 1.0), axis=(0.0, 1.0, 0.0), limits=(-0.3, 0.3))
     builder.set_limit_softness(hinge, time_constant=0.05, damping_ratio=1.0)
-    model = builder.finalize(dt=1e-3, iterations=8, solver=solver)
+    model = builder.finalize(dt=1e-3, iterations=8)
     final, trajectory = jax.jit(lambda s: dbd.rollout(model, s, steps=3000))(dbd.init(model))
-    angle = _hinge_angles(model, trajectory)[-1]  # gravity turns the rod about +y, towards the upper bound
+    angle = scenes.hinge_angles(model, trajectory.quat)[-1, 0, 0]  # gravity turns it towards the upper bound
     omega = 1.0 / 0.05
     inertia = 0.01 + 1.0 * 0.5**2
     torque = 1.0 * 9.81 * 0.5 * np.cos(angle)
@@ -123,7 +111,7 @@ def test_rigid_limits_hold_the_bound_under_the_same_torque(float64):
     builder.add_hinge_joint(dbd.WORLD, rod, anchor=(0.0, 0.0, 1.0), axis=(0.0, 1.0, 0.0), limits=(-0.3, 0.3))
     model = builder.finalize(dt=1e-3, iterations=8)
     _, trajectory = jax.jit(lambda s: dbd.rollout(model, s, steps=3000))(dbd.init(model))
-    assert _hinge_angles(model, trajectory)[-1] == pytest.approx(0.3, abs=1e-4)
+    assert scenes.hinge_angles(model, trajectory.quat)[-1, 0, 0] == pytest.approx(0.3, abs=1e-4)
 
 
 @pytest.mark.parametrize("solver", ["dbd", "impulse"])
@@ -140,7 +128,8 @@ def test_a_hinge_turned_past_pi_beyond_its_bound_is_pushed_back_to_that_bound(fl
     state = dbd.init(model)
     state = dataclasses.replace(state, pos=dm.quat_rotate(turn, state.pos), quat=dm.quat_multiply(turn, state.quat))
     _, trajectory = jax.jit(lambda s: dbd.rollout(model, s, steps=50))(state)
-    past = np.asarray(dm.wrap_angle(jnp.asarray(_hinge_angles(model, trajectory)[:5]) + 3.0))  # from the bound
+    angles = scenes.hinge_angles(model, trajectory.quat)[:5, 0, 0]
+    past = np.asarray(dm.wrap_angle(jnp.asarray(angles) + 3.0))  # from the bound
     # the short way back: from 0.3 below the bound up through it (the correction's speed then
     # carries the rod on into its range, a rigid limit's kick), never down into the excluded arc
     assert past[0] > -0.3 and np.all(np.diff(past) > 0.0)

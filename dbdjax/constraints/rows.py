@@ -353,13 +353,11 @@ def angular_row(
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     if hold is not None:
         point_impulse, gap = _point_impulses(hold, turn_a, turn_b)
-        if held_step is True:  # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
-            inverse_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
-            error = error + math.dot(point_impulse, hold.gap)  # the slope along the held direction
-        elif held_step is not False:  # per joint (an array): soft limits step with the held response
+        if held_step is not False:  # True, or per joint (soft limits)
+            # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
             held_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
             inverse_mass = jnp.where(held_step, held_mass, inverse_mass)
-            error = jnp.where(held_step, error + math.dot(point_impulse, hold.gap), error)
+            error = jnp.where(held_step, error + math.dot(point_impulse, hold.gap), error)  # the held slope
     drift = 0.0
     if rule.spring or rule.speed or rule.soft:
         drift = math.dot(direction, h * (pair.ang_vel_a - pair.ang_vel_b) + (pair.dtheta_a - pair.dtheta_b))

@@ -113,19 +113,17 @@ def spring_softness(stiffness, damping, error, h: float):
 
 
 def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper, active, softness=0.0,
-                soft=False, held=0.0, per_mass=False) -> Rows:  # fmt: skip
+                soft=False, held=0.0) -> Rows:  # fmt: skip
     """Rows (R,) from their Jacobians (R, 3), bias, bounds and `active` (R,). soft: (R,) bool, the
     rows that are spring-dampers of softness s (R,); the others are rigid. held: (R,) what a point
-    hold takes off K (`point_hold`; 0 for none). per_mass: (R,) bool, soft rows whose s is given
-    per unit of effective mass (s / K: soft limits). Inactive rows, and rigid rows that move
-    nothing (K = 0), get mass = mix = 0: they never move."""
+    hold takes off K (`point_hold`; 0 for none). Inactive rows, and rigid rows that move nothing
+    (K = 0), get mass = mix = 0: they never move."""
     inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, math.dot(linear, linear))
     inverse_mass = jnp.maximum(inverse_mass - held, 0.0)
     bias, lower, upper = (jnp.broadcast_to(jnp.asarray(x, inverse_mass.dtype), inverse_mass.shape)
                           for x in (bias, lower, upper))  # fmt: skip
     solvable = active & (inverse_mass > 0.0)
     rigid_mass = jnp.where(solvable, 1.0 / jnp.where(solvable, inverse_mass, 1.0), 0.0)
-    softness = jnp.where(per_mass, softness * rigid_mass, softness)
     soft_mix = 1.0 / (1.0 + softness * inverse_mass)  # s, K >= 0
     mass = jnp.where(soft, jnp.where(active, softness * soft_mix, 0.0), rigid_mass)
     mix = jnp.where(soft & active, soft_mix, 0.0)
@@ -278,8 +276,6 @@ _SOFT = np.isin(np.arange(NUM_SCALARS), [HINGE_DRIVE, *range(EULER_DRIVE, EULER_
 # The scalar rows that push with the joint point held (`point_hold`); a slice, not an index array:
 # a NumPy int64 index array met int32 indices after a float64 test in the same process.
 _HELD = slice(ROTOR, ROTOR + 3)
-# The limit rows (held too where the joint's limits are soft).
-_LIMITS = (ANGLE_LOWER, ANGLE_UPPER, CONE, TRAVEL_LOWER, TRAVEL_UPPER, *range(EULER_LOWER, EULER_UPPER + 3))
 
 
 class JointRows(NamedTuple):
@@ -369,37 +365,23 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
             linear_motor = (slide, torque_a, torque_b, -target.motor, -force, force, flag.linear_motor, 0.0)
             motor = jax.tree.map(lambda x, y: jnp.where(flag.linear_motor, y, x), motor, linear_motor)
         scalar[MOTOR] = motor
-    # Limits: one-sided rows with the speculative bias; a joint with soft limits
-    # (`Joints.limit_stiffness`) has each row past its bound at the start of the substep as a spring
-    # row per unit of its effective mass (the DBD solver's `rows.soft_limit`; `scalar_rows`'
-    # per_mass) with the joint point held, and the rows not past it inactive (MuJoCo's soft limit
-    # acts only there: a speculative row would stop the joint rigidly at its bound).
-    pressed = {}  # limit row -> () bool, a spring this substep
-
-    def limit(index, jacobian, error, active):
-        bias, softness = baumgarte_bias(error, beta, h, True), 0.0
-        if "soft_limits" in rows:
-            weight = h * joint.limit_stiffness + joint.limit_damping
-            pressed[index] = flag.soft_limits & (error < 0.0)
-            bias = jnp.where(pressed[index], joint.limit_stiffness * error / jnp.where(pressed[index], weight, 1.0),
-                             bias)  # fmt: skip
-            softness = jnp.where(pressed[index], h * weight, 0.0)  # per unit effective mass
-            active = active & (pressed[index] | ~flag.soft_limits)
-        scalar[index] = (*jacobian, bias, 0.0, inf, active, softness)
-
     if "has_angle_limits" in rows:  # SI (108)-(121): C_min = angle - lower, C_max = upper - angle
+        active = flag.has_angle_limits
         lower, upper = joints.limit_errors(angle, joint.lower, joint.upper, periodic=True)
-        limit(ANGLE_LOWER, (zero3, axle, axle), lower, flag.has_angle_limits)
-        limit(ANGLE_UPPER, (zero3, -axle, -axle), upper, flag.has_angle_limits)
+        scalar[ANGLE_LOWER] = (zero3, axle, axle, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
+        scalar[ANGLE_UPPER] = (zero3, -axle, -axle, baumgarte_bias(upper, beta, h, True), 0.0, inf, active, 0.0)
     if "has_cone" in rows:  # C = cone limit - angle between the twist axes (DBD (81)), >= 0
         cone_angle, cone_axis = math.angle_between(
             math.quat_rotate(quat_a, joint.local_axis_a), math.quat_rotate(quat_b, joint.local_axis_b)
         )
-        limit(CONE, (zero3, -cone_axis, -cone_axis), joint.cone_limit - cone_angle, flag.has_cone)
+        bias = baumgarte_bias(joint.cone_limit - cone_angle, beta, h, True)
+        scalar[CONE] = (zero3, -cone_axis, -cone_axis, bias, 0.0, inf, flag.has_cone, 0.0)
     if "has_travel_limits" in rows:  # SI (65)-(78) on the travel along the slide axis
-        lower, upper = joints.limit_errors(travel, joint.lower, joint.upper)
-        limit(TRAVEL_LOWER, (slide, torque_a, torque_b), lower, flag.has_travel_limits)
-        limit(TRAVEL_UPPER, (-slide, -torque_a, -torque_b), upper, flag.has_travel_limits)
+        active = flag.has_travel_limits
+        lower, upper = travel - joint.lower, joint.upper - travel
+        scalar[TRAVEL_LOWER] = (slide, torque_a, torque_b, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
+        scalar[TRAVEL_UPPER] = (-slide, -torque_a, -torque_b, baumgarte_bias(upper, beta, h, True), 0.0, inf, active,
+                                0.0)  # fmt: skip
 
     # Universal lock: hinge axis 1 (fixed in a) and axis 2 (fixed in b) stay perpendicular, C = m1 . m2
     # (the DBD solver's universal row, joints.project). dC/dt = (w_a x m1) . m2 + m1 . (w_b x m2)
@@ -421,9 +403,11 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         angles, directions = joints._euler_angles(joint, flag, pair, rows)
     if "euler_limited" in rows:
         for k in range(3):
+            active = flag.euler_limited[k]
             lower, upper = joints.limit_errors(angles[k], joint.axis_lower[k], joint.axis_upper[k], periodic=True)
-            limit(EULER_LOWER + k, (zero3, directions[k], directions[k]), lower, flag.euler_limited[k])
-            limit(EULER_UPPER + k, (zero3, -directions[k], -directions[k]), upper, flag.euler_limited[k])
+            g = directions[k]
+            scalar[EULER_LOWER + k] = (zero3, g, g, baumgarte_bias(lower, beta, h, True), 0.0, inf, active, 0.0)
+            scalar[EULER_UPPER + k] = (zero3, -g, -g, baumgarte_bias(upper, beta, h, True), 0.0, inf, active, 0.0)
     if "euler_drive" in rows:
         torque = joint.drive_max_torque * h
         for k in range(3):
@@ -496,22 +480,12 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     linear, angular_a, angular_b = (jnp.stack([entry[k] for entry in scalar]) for k in range(3))
     bias, lower, upper, softness = (jnp.stack([jnp.asarray(entry[k], dtype) for entry in scalar]) for k in (3, 4, 5, 7))
     active = jnp.stack([jnp.asarray(entry[6], bool) for entry in scalar])
-    scalar_hold, held = jnp.zeros((NUM_SCALARS, 3), dtype), jnp.zeros(NUM_SCALARS, dtype)
+    scalar_hold, held = jnp.zeros((NUM_SCALARS, 3), dtype), 0.0
     if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
-        hold, taken = point_hold(pair, point, linear[_HELD], angular_a[_HELD], angular_b[_HELD])
+        hold, held = point_hold(pair, point, linear[_HELD], angular_a[_HELD], angular_b[_HELD])
         scalar_hold = scalar_hold.at[_HELD].set(hold)
-        held = held.at[_HELD].set(jnp.diagonal(taken))
-    soft, per_mass = jnp.asarray(_SOFT), jnp.zeros(NUM_SCALARS, bool)
-    for index, spring in pressed.items():  # soft limits: held where the joint's limits are soft
-        hold, taken = point_hold(pair, point, linear[index][None], angular_a[index][None], angular_b[index][None])
-        scalar_hold = scalar_hold.at[index].set(jnp.where(flag.soft_limits, hold[0], 0.0))
-        held = held.at[index].set(jnp.where(flag.soft_limits, taken[0, 0], 0.0))
-        soft, per_mass = soft.at[index].set(spring), per_mass.at[index].set(spring)
-        # a soft limit row that no longer presses starts from no impulse (it cannot take one back)
-        stored = SCALARS.start + index
-        impulses = impulses.at[stored].set(jnp.where(flag.soft_limits & ~spring, 0.0, impulses[stored]))
-    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, soft, held,
-                          per_mass)  # fmt: skip
+        held = jnp.zeros(NUM_SCALARS, dtype).at[_HELD].set(jnp.diagonal(held))
+    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT, held)
 
     # Angular lock, a block over the plane across the axle (hinge, planar: SI (86)-(90), the error
     # the angle between the axes about the axis turning a's toward b's) or over all three axes
@@ -559,7 +533,7 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     for i in _scalar_rows_in_use(rows):
         before = scalars[i]
         pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
-        if ROTOR <= i < ROTOR + 3 or ("soft_limits" in rows and i in _LIMITS):  # held rows
+        if ROTOR <= i < ROTOR + 3:  # _HELD
             pair, point_impulse = held(
                 pair, point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[i][None]
             )
