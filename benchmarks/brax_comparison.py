@@ -6,6 +6,8 @@ through 100 / 1000 steps, with and without rematerialisation).
 
     python benchmarks/brax_comparison.py            # quick: batches 1 16, short timings
     python benchmarks/brax_comparison.py --full     # batches 1 16 256 4096, longer timings
+    python benchmarks/brax_comparison.py --tasks accuracy --engines dbdjax-dbd-tree   # one task, one engine
+                                                    # (dbd-tree: DBD with finalize(tree_solve=True))
 
 Writes benchmarks/results/brax_comparison_<platform>.json and prints a table with ratios to
 Brax positional. Needs the [brax] extra (brax, mujoco). The models are Brax's own humanoid.xml and
@@ -64,8 +66,12 @@ class Engine:
 
 
 def dbdjax_engine(xml: Path, solver: str) -> Engine:
+    """solver: "dbd", "impulse", or "dbd-tree" (DBD with `tree_solve`: each iteration ends with the
+    direct solve of the joint tree's points)."""
     kwargs = {"substeps": 1, "iterations": DBD_ITERATIONS}
-    if solver != "dbd":
+    if solver == "dbd-tree":
+        kwargs["tree_solve"] = True
+    elif solver != "dbd":
         kwargs["solver"] = solver
     model = dbd.load_mjcf(xml, **kwargs)
     remat_model = dbd.load_mjcf(xml, checkpoint=True, **kwargs)
@@ -468,7 +474,8 @@ def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
             )
         if "dropped" in data:
             d = data["dropped"]
-            print(f"{'':<18}dropped 1 s: max joint gap {d['max_joint_gap_m']:.2e} m, "
+            label = "" if data["throughput"] else name  # an engine measured on this task alone
+            print(f"{label:<18}dropped 1 s: max joint gap {d['max_joint_gap_m']:.2e} m, "
                   f"energy gain {d['max_energy_gain_J']:.2f} J")  # fmt: skip
         for error in data.get("errors", []):
             print(f"{'':<18}error: {error}")

@@ -1080,6 +1080,7 @@ class ModelBuilder:
         restitution_iterations: int = 2,
         initial_guess: str = "zero",
         baumgarte: float = 0.2,
+        tree_solve: bool = False,
     ) -> Model:
         """Freeze the description into a `Model` for `init`, `step` and `rollout`.
 
@@ -1103,6 +1104,13 @@ class ModelBuilder:
         initial_guess: where each substep's sweeps start. "zero" (default): dX = 0 as in DBD Algorithm 1;
           "tree": the exact solution of the linearised point constraints of the joint tree
           (solvers/tree.py), which long chains need to hold their tension.
+        tree_solve: end every iteration with that exact solve, linearised where the sweep left the
+          bodies (block Gauss-Seidel: the joint tree's points as one block, solved directly). The
+          joint points then hold to second order at every step and the other rows carry what the
+          sweeps leave. For jointed bodies that hang or fly: a 20-link chain at dt = 1/30 and 10
+          iterations keeps its joints to 0.0001 mm (170 mm without). Not for bodies standing on
+          contacts, which are not in the direct solve: it pulls the feet back into the floor
+          each iteration and the standing ragdoll (2 x 8) collapses within two seconds. DBD solver only.
         """
         dt = _scalar(dt, "finalize: dt")
         if dt <= 0.0:
@@ -1117,6 +1125,10 @@ class ModelBuilder:
             raise ValueError(f"finalize: unknown initial_guess {initial_guess!r}; choose one of {INITIAL_GUESSES}")
         if solver == "impulse":
             self._check_impulse_support()
+            if tree_solve:
+                raise ValueError(
+                    "finalize: tree_solve is a step of the DBD solver's iterations; solver='impulse' has none"
+                )
         baumgarte = self._baumgarte("finalize: baumgarte", baumgarte)
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
@@ -1128,6 +1140,7 @@ class ModelBuilder:
             jacobi=bool(jacobi), velocity_dependent_inertia=bool(velocity_dependent_inertia),
             checkpoint=bool(checkpoint), contact_margin=contact_margin, contact_compliance=contact_compliance,
             restitution_iterations=int(restitution_iterations), initial_guess=initial_guess, baumgarte=baumgarte,
+            tree_solve=bool(tree_solve),
         )  # fmt: skip
         return self._model(options)
 

@@ -21,6 +21,8 @@ contact groups alone, moving velocities instead of displacements.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -132,9 +134,20 @@ class _Run:
         )  # (R, N + 1)
 
 
+class TreeStep(NamedTuple):
+    """The direct solve that ends each iteration with `tree_solve` (solvers/tree.py): a function
+    (dx, dtheta, point multipliers (J, 3)) -> (dx step, dtheta step, multiplier step (J, 3)), the
+    family whose nodes are the joints, and the multiplier columns it steps."""
+
+    solve: Callable
+    family: int
+    columns: slice
+
+
 def gauss_seidel(
-    colours: tuple[Colour, ...], families: list[Family], table: BodySet, iterations: int, multipliers: list
-) -> tuple[jnp.ndarray, jnp.ndarray, list]:
+    colours: tuple[Colour, ...], families: list[Family], table: BodySet, iterations: int, multipliers: list,
+    tree_step: TreeStep | None = None,
+) -> tuple[jnp.ndarray, jnp.ndarray, list]:  # fmt: skip
     """`iterations` sweeps over the colours; multipliers: one (M_f, m_f) array per family, in
     node order, in and out. Returns (dx, dtheta) (N + 1, 3) and the final multipliers.
 
@@ -143,7 +156,7 @@ def gauss_seidel(
     the compile time of a jointed model no longer grows with its number of colours. A colour of
     its own (different families from its neighbours) is unrolled. What does not change during the
     sweeps (the poses, masses, inertias and velocities of the bodies each node reads) is gathered
-    once, before them.
+    once, before them. tree_step: run after every sweep (None: none).
     """
     n = table.dx.shape[0] - 1
     present = [[f for f, nodes in enumerate(colour.nodes) if len(nodes.array)] for colour in colours]
@@ -174,24 +187,34 @@ def gauss_seidel(
             else:
                 (dx, dtheta), new = jax.lax.scan(functools.partial(colour, run=run), (dx, dtheta), xs)
             updated.append(new)
+        if tree_step is not None:
+            f, columns = tree_step.family, tree_step.columns
+            point = node_order(updated, f, multipliers[f])[:, columns]
+            step_dx, step_dtheta, kappa = tree_step.solve(dx, dtheta, point)
+            dx, dtheta = dx + step_dx, dtheta + step_dtheta
+            updated = [[lam.at[..., columns].add(kappa[index]) if g == f else lam
+                        for g, index, lam in zip(run.fs, run.index, run_lams, strict=True)]
+                       for run, run_lams in zip(runs, updated, strict=True)]  # fmt: skip
         return (dx, dtheta, updated), None
 
-    (dx, dtheta, lams), _ = jax.lax.scan(iteration, (table.dx, table.dtheta, start), None, length=iterations)
-    result = list(multipliers)
-    for f in range(len(families)):  # back to node order
+    def node_order(lams, f, default):
+        """Family f's multipliers (M_f, m_f) in node order from the runs' padded layout."""
         order, values = [], []
         for run, run_lams in zip(runs, lams, strict=True):
             for k in (k for k, g in enumerate(run.fs) if g == f):
                 for r, nodes in enumerate(run.nodes[k]):
                     order.append(nodes)
                     values.append(run_lams[k][r, : len(nodes)])
-        if order:
-            result[f] = jnp.concatenate(values)[np.argsort(np.concatenate(order))]
-    return dx, dtheta, result
+        return jnp.concatenate(values)[np.argsort(np.concatenate(order))] if order else default
+
+    (dx, dtheta, lams), _ = jax.lax.scan(iteration, (table.dx, table.dtheta, start), None, length=iterations)
+    return dx, dtheta, [node_order(lams, f, multipliers[f]) for f in range(len(families))]
 
 
-def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list):
-    """Every node at once from the same dX; each body moves by the mean of its nodes' requests."""
+def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers: list,
+           tree_step: TreeStep | None = None):  # fmt: skip
+    """Every node at once from the same dX; each body moves by the mean of its nodes' requests.
+    tree_step: run after every iteration, as in `gauss_seidel`."""
     n = table.dx.shape[0] - 1
     used = [f for f, family in enumerate(families) if len(family.bodies)]
     touched = np.concatenate([families[f].bodies.reshape(-1) for f in used])
@@ -205,7 +228,13 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
         dtheta_rows = jnp.concatenate([m[1] for m in moved]) - dtheta[touched]
         dx = dx + jax.ops.segment_sum(dx_rows, touched, n + 1) * share
         dtheta = dtheta + jax.ops.segment_sum(dtheta_rows, touched, n + 1) * share
-        return (dx, dtheta, [m[2] for m in moved]), None
+        lams = [m[2] for m in moved]
+        if tree_step is not None and tree_step.family in used:
+            k, columns = used.index(tree_step.family), tree_step.columns
+            step_dx, step_dtheta, kappa = tree_step.solve(dx, dtheta, lams[k][:, columns])
+            dx, dtheta = dx + step_dx, dtheta + step_dtheta
+            lams[k] = lams[k].at[:, columns].add(kappa)
+        return (dx, dtheta, lams), None
 
     start = [multipliers[f] for f in used]
     (dx, dtheta, lams), _ = jax.lax.scan(iteration, (table.dx, table.dtheta, start), None, length=iterations)
@@ -240,11 +269,21 @@ def solve(
             dx, dtheta, kappa = tree.initial_guess(model, table)
             table = table._replace(dx=dx, dtheta=dtheta)
             multipliers[0] = multipliers[0].at[:, joints.POINT : joints.POINT + 3].set(kappa)
+        tree_step = None
+        if options.tree_solve and tree.forest(structure)[0].size:
+            # Each iteration ends with the exact solve of the tree's joints, linearised where the
+            # sweep left the bodies (refactored each time: a Newton step; factored once at X*, the
+            # chord steps gained energy on a 20-link chain at dt = 1/30).
+            def solve_points(dx, dtheta, point_multipliers):
+                now = table._replace(dx=dx, dtheta=dtheta)
+                return tree.solve(model, tree.factor(model, now), now, point_multipliers)
+
+            tree_step = TreeStep(jax.checkpoint(solve_points), 0, slice(joints.POINT, joints.POINT + 3))
         if options.jacobi:
-            dx, dtheta, multipliers = jacobi(all_families, table, options.iterations, multipliers)
+            dx, dtheta, multipliers = jacobi(all_families, table, options.iterations, multipliers, tree_step)
         else:
             dx, dtheta, multipliers = gauss_seidel(structure.colours, all_families, table, options.iterations,
-                                                    multipliers)  # fmt: skip
+                                                    multipliers, tree_step)  # fmt: skip
     else:
         dx = dtheta = jnp.zeros((n + 1, 3), dtype)
     contact_lams = multipliers[len(all_families) - len(contacts) :]

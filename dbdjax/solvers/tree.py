@@ -39,6 +39,8 @@ The schedule (`schedule`) is static: numpy on the host, at trace time.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,10 +48,10 @@ import numpy as np
 from dbdjax import math
 from dbdjax.constraints import joints as joint_family
 from dbdjax.constraints.rows import BodyPair, BodySet
-from dbdjax.model import BALL, FIXED, HINGE, Model, Structure
+from dbdjax.model import BALL, FIXED, GIMBAL, HINGE, UNIVERSAL, Model, Structure
 
 # Joint kinds whose point constraint is a full 3-D one (a slider's acts only across its axis).
-POINT_KINDS = (BALL, HINGE, FIXED)
+POINT_KINDS = (BALL, HINGE, FIXED, UNIVERSAL, GIMBAL)
 
 
 def schedule(
@@ -187,20 +189,29 @@ def point_gaps(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray,
     return jax.vmap(one)(model.joints, joint_family.flags(structure), pairs)
 
 
-def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """Solve the linearised point constraints of the joint tree at X* exactly.
+class Factors(NamedTuple):
+    """The saddle-point system of the joint tree eliminated at one configuration, per level slot
+    (L, W): what `solve` needs besides the gaps. Built once per substep by `factor`."""
 
-    bodies: the solver's per-body table at X* (dx = dtheta = 0), (N + 1, ...) with the world as
-    the last row: inv_mass (N + 1,) 1/kg, inv_inertia (N + 1, 3, 3) M~^-1 (0 for the world).
-    Returns dx (N + 1, 3) m, dtheta (N + 1, 3) rad (world row 0) and kappa (J, 3) kg m, the
-    integrated impulse times h on body a of each joint (-kappa on b; 0 outside the tree).
+    indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
+    joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
+    empty: np.ndarray  # (L, W) bool
+    matrices: jnp.ndarray  # (L, W, 3, 13) [J_child | J_parent | alpha]
+    inverses: jnp.ndarray  # (L, W, 6, 9) [D_b^-1 | S_j^-1 in the top three rows]
+
+
+def factor(model: Model, bodies: BodySet) -> Factors:
+    """Eliminate the tree's linearised point constraints at the configuration of `bodies`.
+
+    bodies: the solver's per-body table (N + 1, ...), the world as the last row: inv_mass (N + 1,)
+    1/kg, inv_inertia (N + 1, 3, 3) M~^-1, and dx, dtheta where the Jacobians are taken.
     """
     inv_mass, inv_inertia = bodies.inv_mass, bodies.inv_inertia
     structure = model.structure
     tree_joint, tree_body, tree_parent = forest(structure)
     world, num_joints = structure.num_bodies, structure.num_joints
     dtype = inv_inertia.dtype
-    delta, arm_a, arm_b = point_gaps(model, bodies)
+    _, arm_a, arm_b = point_gaps(model, bodies)
 
     # Body blocks M~ = diag(m 1, I~) (6, 6). The world row is a stand-in identity: empty slots
     # (body = world, zero Jacobians, alpha = 1) then invert identities and leave the world at 0.
@@ -219,47 +230,84 @@ def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarr
     parent_sign = np.where(tree_parent == world, 0.0, -sign)
     j_child = _point_jacobian(sign, jnp.where(child_is_a[..., None], arm_a[joint], arm_b[joint]))
     j_parent = _point_jacobian(parent_sign, jnp.where(child_is_a[..., None], arm_b[joint], arm_a[joint]))
-    gap = jnp.where(empty[..., None], 0.0, delta[joint])  # c_j = p_a - p_b at X*
     alpha = jnp.where(empty, 1.0, model.joints.regularization[joint])  # S = 1 in empty slots
 
     # Each level's inputs, carry and outputs are packed into one array apiece: on CPU every array a
     # loop step slices or updates is one more kernel, and the levels run one after another.
     indices = np.stack([tree_body, tree_parent], axis=-1)  # (L, W, 2)
-    inputs = jnp.concatenate(
-        [j_child, j_parent, gap[..., None], jnp.broadcast_to(alpha[..., None, None], gap.shape + (1,))], axis=-1
-    )  # (L, W, 3, 14)
+    matrices = jnp.concatenate(
+        [j_child, j_parent, jnp.broadcast_to(alpha[..., None, None], alpha.shape + (3, 1))], axis=-1
+    )  # (L, W, 3, 13)
     eye3 = jnp.eye(3, dtype=dtype)
 
     def eliminate(carry, level):
-        index, packed = level  # carry: [D_b | z_b] (N + 1, 6, 7), the children added so far
-        jc, jp, c, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12], packed[..., 0, 13]
-        own = carry[index[:, 0]]
-        d_inv, z_body = _inverse6(own[..., :6]), own[..., 6]
-        jc_d = _mm(jc, d_inv)
-        s_inv = math.inverse3(alpha[:, None, None] * eye3 + _mm(jc_d, _transpose(jc)))
-        z_joint = -c - _mv(jc_d, z_body)
-        jp_s = _mm(_transpose(jp), s_inv)
-        carry = carry.at[index[:, 1]].add(jnp.concatenate([_mm(jp_s, jp), _mv(jp_s, z_joint)[..., None]], axis=-1))
-        width = d_inv.shape[0]
-        factors = [d_inv.reshape(width, 36), s_inv.reshape(width, 9), z_body, z_joint]
-        return carry, jnp.concatenate(factors, axis=-1)  # (W, 54)
+        index, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
+        jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 0, 12]
+        d_inv = _inverse6(carry[index[:, 0]])
+        s_inv = math.inverse3(alpha[:, None, None] * eye3 + _mm(_mm(jc, d_inv), _transpose(jc)))
+        carry = carry.at[index[:, 1]].add(_mm(_mm(_transpose(jp), s_inv), jp))
+        s_rows = jnp.concatenate([s_inv, jnp.zeros((len(s_inv), 3, 3), dtype)], axis=-2)  # (W, 6, 3)
+        return carry, jnp.concatenate([d_inv, s_rows], axis=-1)  # (W, 6, 9)
 
-    start = jnp.concatenate([blocks, jnp.zeros((world + 1, 6, 1), dtype)], axis=-1)
-    _, factors = jax.lax.scan(eliminate, start, (indices, inputs))
+    _, inverses = jax.lax.scan(eliminate, blocks, (indices, matrices))
+    return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
+
+
+def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None):
+    """The exact step of the linearised point constraints of the joint tree from where `bodies` are.
+
+    factors: `factor` of the same model (at this configuration, or at one close to it: then the
+    step is a chord step, exact for the gaps to first order in how far the bodies moved since).
+    bodies: the solver's per-body table (N + 1, ...) with its current dx, dtheta. multipliers:
+    (J, 3) kg m, the point multipliers each joint has taken so far this substep (None: zero), which
+    a regularised joint's constraint c + alpha lambda = 0 reads (DBD (47)).
+    Returns dx (N + 1, 3) m and dtheta (N + 1, 3) rad to add (world row 0) and kappa (J, 3) kg m,
+    the multiplier step of each joint on its body a (-kappa on b; 0 outside the tree).
+    """
+    dtype = factors.inverses.dtype
+    world, num_joints = model.structure.num_bodies, model.structure.num_joints
+    delta, _, _ = point_gaps(model, bodies)
+    if multipliers is not None:
+        delta = delta + model.joints.regularization[:, None] * multipliers
+    gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, 3)
+
+    def eliminate(z, level):
+        index, packed, inverse, c = level  # z: (N + 1, 6), what the children added so far
+        jc, jp = packed[..., :6], packed[..., 6:12]
+        d_inv, s_inv = inverse[..., :6], inverse[:, :3, 6:]
+        z_body = z[index[:, 0]]
+        z_joint = -c - _mv(_mm(jc, d_inv), z_body)
+        z = z.at[index[:, 1]].add(_mv(_mm(_transpose(jp), s_inv), z_joint))
+        return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 9)
+
+    _, right = jax.lax.scan(
+        eliminate, jnp.zeros((world + 1, 6), dtype), (factors.indices, factors.matrices, factors.inverses, gap)
+    )
 
     def substitute(x, level):
-        index, packed, factors = level
+        index, packed, inverse, z = level
         jc, jp = packed[..., :6], packed[..., 6:12]
-        width = factors.shape[0]
-        d_inv, s_inv = factors[:, :36].reshape(width, 6, 6), factors[:, 36:45].reshape(width, 3, 3)
-        z_body, z_joint = factors[:, 45:51], factors[:, 51:54]
-        kappa = _mv(s_inv, z_joint - _mv(jp, x[index[:, 1]]))
-        x = x.at[index[:, 0]].set(_mv(d_inv, z_body + _mv(_transpose(jc), kappa)))
+        d_inv, s_inv = inverse[..., :6], inverse[:, :3, 6:]
+        kappa = _mv(s_inv, z[:, 6:] - _mv(jp, x[index[:, 1]]))
+        x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _mv(_transpose(jc), kappa)))
         return x, kappa
 
     x, kappa_slots = jax.lax.scan(
-        substitute, jnp.zeros((world + 1, 6), dtype), (indices, inputs, factors), reverse=True
-    )
+        substitute, jnp.zeros((world + 1, 6), dtype), (factors.indices, factors.matrices, factors.inverses, right),
+        reverse=True,
+    )  # fmt: skip
     # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
+    tree_joint = np.where(factors.empty, num_joints, factors.joint)
     kappa = jnp.zeros((num_joints + 1, 3), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
     return x[:, :3], x[:, 3:], kappa
+
+
+def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """Solve the linearised point constraints of the joint tree at X* exactly.
+
+    bodies: the solver's per-body table at X* (dx = dtheta = 0), (N + 1, ...) with the world as
+    the last row: inv_mass (N + 1,) 1/kg, inv_inertia (N + 1, 3, 3) M~^-1 (0 for the world).
+    Returns dx (N + 1, 3) m, dtheta (N + 1, 3) rad (world row 0) and kappa (J, 3) kg m, the
+    integrated impulse times h on body a of each joint (-kappa on b; 0 outside the tree).
+    """
+    return solve(model, factor(model, bodies), bodies)
