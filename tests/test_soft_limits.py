@@ -21,10 +21,11 @@ ASSETS = Path(__file__).parent / "assets"
 BOUND = np.radians(10.0)  # the lower bound of `_pendulum_xml`'s range; qpos0 = 0 lies 10 degrees below it
 
 
-def _pendulum_xml(dt: float, solref: str) -> str:
+def _pendulum_xml(dt: float, solref: str, armature: float = 0.0) -> str:
     """A rod on a hinge about y, no gravity, built 10 degrees below its range's lower bound."""
     return f"""<mujoco><option timestep="{dt}" gravity="0 0 0"/><worldbody>
-    <body pos="0 0 1"><joint type="hinge" axis="0 1 0" limited="true" range="10 60" solreflimit="{solref}"/>
+    <body pos="0 0 1"><joint type="hinge" axis="0 1 0" limited="true" range="10 60" solreflimit="{solref}"
+    armature="{armature}"/>
     <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.05"/></body></worldbody></mujoco>"""
 
 
@@ -43,9 +44,11 @@ def _one_sided_oscillator(time_constant: float, damping_ratio: float, violation:
     return np.array(out)
 
 
-def _gap_to_mujoco(dt: float, solref: str, seconds: float) -> tuple[float, np.ndarray, np.ndarray]:
+def _gap_to_mujoco(
+    dt: float, solref: str, seconds: float, armature: float = 0.0
+) -> tuple[float, np.ndarray, np.ndarray]:
     """(max |q - q_mujoco| over `seconds`, our q, the sample times), both stepped at dt."""
-    xml = _pendulum_xml(dt, solref)
+    xml = _pendulum_xml(dt, solref, armature)
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)
     steps = round(seconds / dt)
@@ -73,6 +76,24 @@ def test_a_pose_built_past_a_soft_limit_eases_back_as_mujoco_does(float64, solre
     assert gap < SOLREFS[solref]
     # and both follow the one-sided oscillator MuJoCo's soft limit is, while inside the range's
     # first 0.1 s (the rod then coasts on towards the upper bound)
+    time_constant, damping_ratio = (float(v) for v in solref.split())
+    early = times <= 0.1
+    exact = BOUND + _one_sided_oscillator(time_constant, damping_ratio, -BOUND, times[early])
+    assert np.max(np.abs(ours[early] - exact)) < ODE_GAPS[solref]
+
+
+# the same with armature 4 kg m^2 on the hinge, 10x the rod's own 0.40 kg m^2 about it (measured:
+# 0.0275, 0.1200, 0.0053 rad; before the limit's effective mass counted the armature, 0.48, 0.67 and
+# 0.21 rad: the spring was 11x too soft)
+ARMATURE_GAPS = {"0.02 1": 3.4e-2, "0.02 0.5": 1.3e-1, "0.05 1": 5.5e-3}
+
+
+@pytest.mark.parametrize("solref", list(SOLREFS))
+def test_a_soft_limit_on_a_hinge_with_armature_eases_back_as_mujoco_does(float64, solref):
+    # MuJoCo's soft limit is a spring per unit of the joint-space mass, armature included; the rotor
+    # row carries the armature's inertia, and the limit row's effective mass must count it too.
+    gap, ours, times = _gap_to_mujoco(1e-3, solref, 0.3, armature=4.0)
+    assert gap < ARMATURE_GAPS[solref]
     time_constant, damping_ratio = (float(v) for v in solref.split())
     early = times <= 0.1
     exact = BOUND + _one_sided_oscillator(time_constant, damping_ratio, -BOUND, times[early])
@@ -159,6 +180,24 @@ def test_dropped_humanoid_gains_no_energy_with_soft_limits():
     energy = np.asarray(jax.vmap(lambda state: diagnostics.energy(model, state))(trajectory))
     assert bool(jnp.all(dbd.is_finite(trajectory)))
     assert energy.max() < float(diagnostics.energy(model, start)) + 0.1
+
+
+@pytest.mark.slow
+def test_dropped_ant_stands_on_its_soft_limits():
+    # Brax's ant has armature 1 kg m^2 on every hinge, far above its legs' own inertia: a soft limit
+    # per unit of the bodies' effective mass alone was too soft to carry the ant, whose ankles
+    # folded 1.0-1.2 rad past their bounds until the torso lay below the floor (-0.22 m after 3 s at
+    # 16 iterations; its sphere does not collide). Counting the armature in that mass, measured:
+    # torso 0.35 m, every hinge within 0.06 rad of its range (MuJoCo: 0.59 m with the ankles
+    # inside their ranges, 0.36 m with the armature set to 0; rigid limits: 0.60 m).
+    model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=1, iterations=16)
+    final, trajectory = jax.jit(lambda s: dbd.rollout(model, s, jnp.zeros((300, model.num_controls))))(dbd.init(model))
+    assert bool(jnp.all(dbd.is_finite(trajectory)))
+    assert float(final.pos[0, 2]) > 0.3
+    angles = scenes.hinge_angles(model, final.quat[None])[0, :, 0]
+    lower, upper = np.asarray(model.joints.lower), np.asarray(model.joints.upper)
+    outside = np.maximum(lower - angles, angles - upper)
+    assert outside.max() < 0.1, outside
 
 
 def test_gradient_through_a_soft_limit_matches_finite_differences(float64):

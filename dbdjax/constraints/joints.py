@@ -344,10 +344,10 @@ def project(
     # (the joint coordinate's own effective mass, not the turn of one body about its centre).
     if "soft_limits" in rows:
         soft = (flag.soft_limits, joint.limit_stiffness * h**2, joint.limit_damping * h)
-        limit_rule = lambda active: row.soft_limit(xi, alpha, active, *soft)  # noqa: E731
+        limit_rule = lambda active, armature: row.soft_limit(xi, alpha, active, *soft, armature)  # noqa: E731
         limit_held = flag.soft_limits
     else:
-        limit_rule, limit_held = lambda active: hard(active, inequality=True), False  # noqa: E731
+        limit_rule, limit_held = lambda active, armature: hard(active, inequality=True), False  # noqa: E731
 
     # Armature: MuJoCo's 1/2 armature qdot^2 on the joint coordinate q, in the step's variational
     # form 1/2 armature (q(X* + dX) - q_rotor)^2 / h^2, q_rotor where the rotor's own inertia
@@ -506,9 +506,8 @@ def project(
         angle, axis = hinge_angle(joint, pair)
         sign, error, upper_row = _nearer_bound(angle, joint.lower, joint.upper, periodic=True)
         multiplier = jnp.where(upper_row, lam[ANGLE_UPPER], lam[ANGLE_LOWER])
-        pair, multiplier, hold = row.angular_row(
-            pair, sign * axis, error, multiplier, limit_rule(flag.has_angle_limits), h, hold, limit_held
-        )
+        rule = limit_rule(flag.has_angle_limits, joint.armature[0])
+        pair, multiplier, hold = row.angular_row(pair, sign * axis, error, multiplier, rule, h, hold, limit_held)
         lam[ANGLE_LOWER] = jnp.where(upper_row, lam[ANGLE_LOWER], multiplier)
         lam[ANGLE_UPPER] = jnp.where(upper_row, multiplier, lam[ANGLE_UPPER])
 
@@ -518,8 +517,9 @@ def project(
         cone_angle, cone_axis = math.angle_between(
             *row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
         )
+        rule = limit_rule(flag.has_cone, joint.armature[0])
         pair, lam[CONE], hold = row.angular_row(
-            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], limit_rule(flag.has_cone), h, hold, limit_held
+            pair, cone_axis, joint.cone_limit - cone_angle, lam[CONE], rule, h, hold, limit_held
         )
 
     # Universal / gimbal hinge limits: t_k in [lower_k, upper_k] by two one-sided rows per hinge
@@ -530,8 +530,9 @@ def project(
             angles, directions = euler_angles_now(pair), euler_directions
             sign, error, upper_row = _nearer_bound(angles[k], joint.axis_lower[k], joint.axis_upper[k], periodic=True)
             multiplier = jnp.where(upper_row, lam[EULER_UPPER + k], lam[EULER_LOWER + k])
+            rule = limit_rule(flag.euler_limited[k], joint.armature[k])
             pair, multiplier, hold = row.angular_row(
-                pair, sign * directions[k], error, multiplier, limit_rule(flag.euler_limited[k]), h, hold, limit_held
+                pair, sign * directions[k], error, multiplier, rule, h, hold, limit_held
             )
             lam[EULER_LOWER + k] = jnp.where(upper_row, lam[EULER_LOWER + k], multiplier)
             lam[EULER_UPPER + k] = jnp.where(upper_row, multiplier, lam[EULER_UPPER + k])
@@ -542,9 +543,8 @@ def project(
         travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
         sign, error, upper_row = _nearer_bound(travel, joint.lower, joint.upper)
         multiplier = jnp.where(upper_row, lam[TRAVEL_UPPER], lam[TRAVEL_LOWER])
-        pair, multiplier = row.positional_row(
-            pair, sign * axis, arm_a, arm_b, error, multiplier, limit_rule(flag.has_travel_limits), h
-        )
+        rule = limit_rule(flag.has_travel_limits, joint.armature[0])
+        pair, multiplier = row.positional_row(pair, sign * axis, arm_a, arm_b, error, multiplier, rule, h)
         lam[TRAVEL_LOWER] = jnp.where(upper_row, lam[TRAVEL_LOWER], multiplier)
         lam[TRAVEL_UPPER] = jnp.where(upper_row, multiplier, lam[TRAVEL_UPPER])
 

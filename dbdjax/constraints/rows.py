@@ -152,7 +152,8 @@ class Rule(NamedTuple):
     stiffness_h2 = k h^2 and damping_h = nu h for springs (both 0 for a rigid row; `spring`
     switches to the spring rule). bound: |lambda| <= bound (inf for none). speed_h: a motor's
     target drift (target speed times h); `speed` switches to the motor rule. `soft` switches to
-    the limit rule of `soft_limit`, a spring per unit effective mass where `softened`.
+    the limit rule of `soft_limit`, a spring per unit effective mass where `softened`; `armature`
+    is the rotor inertia on its coordinate, part of that mass.
     """
 
     relaxation: jnp.ndarray
@@ -167,6 +168,7 @@ class Rule(NamedTuple):
     bound: jnp.ndarray | float = jnp.inf
     soft: bool = False
     softened: jnp.ndarray | bool = False
+    armature: jnp.ndarray | float = 0.0
 
 
 def rigid(relaxation, regularization, active, inequality=False) -> Rule:
@@ -179,11 +181,14 @@ def spring(relaxation, active, stiffness_h2, damping_h, bound=jnp.inf) -> Rule:
     return Rule(relaxation, 0.0, active, spring=True, stiffness_h2=stiffness_h2, damping_h=damping_h, bound=bound)
 
 
-def soft_limit(relaxation, regularization, active, softened, stiffness_h2, damping_h) -> Rule:
+def soft_limit(relaxation, regularization, active, softened, stiffness_h2, damping_h, armature=0.0) -> Rule:
     """A one-sided limit row: where `softened` ((), bool) is False the rigid inequality rule, else
     an implicit spring and damper per unit of the row's effective mass, stiffness_h2 = omega^2 h^2
-    and damping_h = 2 zeta omega h (`Joints.limit_stiffness` and `limit_damping` times h^2 and h)."""
-    return Rule(relaxation, regularization, active, True, False, stiffness_h2, damping_h, soft=True, softened=softened)
+    and damping_h = 2 zeta omega h (`Joints.limit_stiffness` and `limit_damping` times h^2 and h).
+    armature: the rotor inertia on the row's coordinate (`Joints.armature`), which that mass
+    includes, as MuJoCo's joint-space mass does (the rotor row carries its inertia separately)."""
+    return Rule(relaxation, regularization, active, True, False, stiffness_h2, damping_h, soft=True, softened=softened,
+                armature=armature)  # fmt: skip
 
 
 def motor(relaxation, active, speed_h, bound) -> Rule:
@@ -197,10 +202,13 @@ def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
     error: c at X* + dX. drift: J (h V* + dX) (only the spring and motor rules read it).
     inverse_mass: w = J M~^-1 J^T. multiplier: lambda so far this substep.
     """
-    if rule.soft:  # a limit: rigid, or where softened the spring rule with k = omega^2 / w, nu = 2 zeta omega / w
-        share = 1.0 / (1.0 + rule.stiffness_h2 + rule.damping_h)
-        error_weight = jnp.where(rule.softened, rule.stiffness_h2 * share, 1.0)
-        drift_weight = jnp.where(rule.softened, rule.damping_h * share, 0.0)
+    if rule.soft:  # a limit: rigid, or where softened the spring rule with k = omega^2 m, nu = 2 zeta omega m
+        # per unit of the effective mass m = 1 / w + armature: omega^2 h^2 and 2 zeta omega h times m w.
+        per_mass = 1.0 + rule.armature * inverse_mass
+        stiffness_h2, damping_h = rule.stiffness_h2 * per_mass, rule.damping_h * per_mass
+        share = 1.0 / (1.0 + stiffness_h2 + damping_h)
+        error_weight = jnp.where(rule.softened, stiffness_h2 * share, 1.0)
+        drift_weight = jnp.where(rule.softened, damping_h * share, 0.0)
         multiplier_weight = jnp.where(rule.softened, share * inverse_mass, 0.0)
         denominator = inverse_mass + error_weight * rule.regularization
         residual = (multiplier_weight * multiplier + error_weight * (error + rule.regularization * multiplier)
