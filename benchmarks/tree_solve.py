@@ -42,6 +42,10 @@ SETTINGS = [("sweeps", 4), ("sweeps", 8), ("tree_solve", 2), ("tree_solve", 3), 
 STATES = [10, 49, 50, 52, 100, 200, 400]  # steps of the drop: free fall, the landing, lying
 
 
+def _rounded(values, digits: int) -> list[float]:
+    return [round(float(v), digits) for v in np.asarray(values).ravel()]
+
+
 def with_options(model, **options):
     return dataclasses.replace(model, options=dataclasses.replace(model.options, **options))
 
@@ -59,11 +63,9 @@ def accuracy_per_step(model) -> list[dict]:
         gaps = jax.vmap(lambda s: jnp.max(dbd.diagnostics.joint_gaps(model, s)))(stepped)
         rows.append({
             "setting": kind, "iterations": iterations, "after_step": STATES,
-            "position_error_mm": np.round(np.abs(np.asarray(stepped.pos - converged.pos)).max(axis=(1, 2)) * 1e3,
-                                          4).tolist(),
-            "angular_velocity_error_rad_s": np.round(
-                np.abs(np.asarray(stepped.ang_vel - converged.ang_vel)).max(axis=(1, 2)), 3).tolist(),
-            "joint_gap_mm": np.round(np.asarray(gaps) * 1e3, 4).tolist(),
+            "position_error_mm": _rounded(np.abs(stepped.pos - converged.pos).max(axis=(1, 2)) * 1e3, 4),
+            "angular_velocity_error_rad_s": _rounded(np.abs(stepped.ang_vel - converged.ang_vel).max(axis=(1, 2)), 3),
+            "joint_gap_mm": _rounded(gaps * 1e3, 4),
         })  # fmt: skip
         print(f"  {kind} {iterations}: position error {rows[-1]['position_error_mm']} mm", flush=True)
     return rows
@@ -129,9 +131,9 @@ def standing_ragdoll() -> list[dict]:
             controls = jnp.zeros((240, doll.num_controls))
             _, trajectory = jax.jit(lambda c, m=variant: dbd.rollout(m, dbd.init(m), c))(controls)
             moved = np.abs(np.asarray(trajectory.pos - model.bodies.initial_pos)).max(axis=(1, 2))
+            at_times = _rounded(moved[[29, 59, 119, 239]] * 1e3, 2)
             rows.append({"hung_by_the_pelvis": hung, "tree_solve": tree_solve,
-                         "largest_move_from_build_pose_mm_at_0.5_1_2_4_s": np.round(moved[[29, 59, 119, 239]] * 1e3,
-                                                                                     2).tolist()})  # fmt: skip
+                         "largest_move_from_build_pose_mm_at_0.5_1_2_4_s": at_times})  # fmt: skip
             print(f"  ragdoll {rows[-1]}", flush=True)
     return rows
 
