@@ -113,20 +113,26 @@ def ball_tree(initial_guess):
 def test_tree_guess_moves_the_converged_solution_only_at_second_order(float64):
     # The constraints' solution set is a manifold, so where the non-linear iterations end depends on
     # where they start; a correct linear guess shifts it only at second order in the correction.
+    differences = _shift_of_the_converged_end(ball_tree, ("zero", "tree"), seed=0)
+    assert differences[1] < 0.3 * differences[0]  # halving the correction quarters the shift (linear: halves)
+
+
+def _shift_of_the_converged_end(make_model, settings, seed: int) -> list[float]:
+    """How far apart the solves of one displaced prediction end under the two `settings`
+    (make_model(setting) -> model), at corrections of about 0.02 and 0.01; every end closes the joints."""
     differences = []
     for scale in (0.02, 0.01):
-        solutions = []
-        for guess in ("zero", "tree"):
-            model = ball_tree(guess)
-            rng = np.random.default_rng(0)
-            predicted = _displaced(dbd.init(model), rng, scale)
+        ends = []
+        for setting in settings:
+            model = make_model(setting)
+            predicted = _displaced(dbd.init(model), np.random.default_rng(seed), scale)
             dx, dtheta, _ = dbd_solver.solve(model, predicted, None, (), 1 / 60)
             after = integrator.apply(predicted, dx, dtheta, 1 / 60)
             assert float(jnp.max(dbd.diagnostics.joint_gaps(model, after))) < 1e-9
-            solutions.append(np.concatenate([np.asarray(dx), np.asarray(dtheta)]))
-        assert np.abs(solutions[0]).max() > scale / 2  # a real correction
-        differences.append(np.abs(solutions[1] - solutions[0]).max())
-    assert differences[1] < 0.3 * differences[0]  # halving the correction quarters the shift (linear: halves)
+            ends.append(np.concatenate([np.asarray(dx), np.asarray(dtheta)]))
+        assert np.abs(ends[0]).max() > scale / 2  # a real correction
+        differences.append(float(np.abs(ends[1] - ends[0]).max()))
+    return differences
 
 
 def test_zero_guess_is_still_available_and_unknown_guesses_are_refused():
@@ -180,20 +186,9 @@ def test_tree_solve_moves_where_the_sweeps_converge_only_at_second_order(float64
     # The points' solution set is a manifold, so where the iterations end depends on the path; with
     # a correct linearisation the direct steps shift that end only at second order in the
     # correction (as the tree guess does, above), and every end closes the joints.
-    differences = []
-    for scale in (0.02, 0.01):
-        ends = []
-        for tree_solve in (False, True):
-            model = universal_and_gimbal_chain(iterations=400, tree_solve=tree_solve)
-            rng = np.random.default_rng(4)
-            start = dbd.init(model)
-            predicted = _displaced(start, rng, scale)
-            dx, dtheta, _ = dbd_solver.solve(model, predicted, None, (), 1 / 60)
-            after = integrator.apply(predicted, dx, dtheta, 1 / 60)
-            assert float(jnp.max(dbd.diagnostics.joint_gaps(model, after))) < 1e-9
-            ends.append(np.concatenate([np.asarray(dx), np.asarray(dtheta)]))
-        assert np.abs(ends[0]).max() > scale / 2  # a real correction
-        differences.append(np.abs(ends[1] - ends[0]).max())
+    differences = _shift_of_the_converged_end(
+        lambda tree_solve: universal_and_gimbal_chain(iterations=400, tree_solve=tree_solve), (False, True), seed=4
+    )
     print(f"\nshift of the end by tree_solve: {differences[0]:.2e} at scale 0.02, {differences[1]:.2e} at 0.01")
     assert differences[1] < 0.3 * differences[0]
 
