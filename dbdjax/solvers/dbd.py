@@ -9,6 +9,7 @@
             for each constraint family present in the colour (each variant of it: the joints by kind):
                 project all its nodes at once                    (jax.vmap, constraints/*.py)
             write back the displacements of the bodies moved     (one gather: no conflicts)
+        with tree_solve: the exact solve of the joint tree's points from there (solvers/tree.py)
 
 Only displacements dX from X* are accumulated; the caller applies them with (36)-(39).
 With `jacobi`, every node is projected at once from the same dX and each body moves by the

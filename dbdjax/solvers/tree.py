@@ -1,4 +1,5 @@
-"""Initial guess for Algorithm 1: an exact linear solve of the point constraints over the joint tree.
+"""An exact linear solve of the point constraints over the joint tree: Algorithm 1's initial guess,
+and the direct step that ends each iteration with `tree_solve`.
 
 Why. Gauss-Seidel moves a correction one joint per colour sweep, so from the guess dX = 0 it
 cannot build the tension of a long chain within a few iterations (DBD 10.1: "it requires N - 1
@@ -15,12 +16,17 @@ solution at X* of
 
     (J M~^-1 J^T + alpha) kappa = -c(X*),      dX = M~^-1 J^T kappa                  DBD (49)
 
-for the point constraint of every ball, hinge and fixed joint in its vector form c = p_a - p_b
-(DBD (64)-(66), the block `rows.point_block` solves joint by joint). The non-linear Gauss-Seidel
+for the point constraint of every ball, hinge, fixed, universal and gimbal joint in its vector form
+c = p_a - p_b (DBD (64)-(66), the block `rows.point_block` solves joint by joint). The non-linear Gauss-Seidel
 iterations then start from it, with each joint's point multiplier set to its kappa, and only
 have the non-linear remainder and the other rows left to remove. In the linear limit the guess
 is exactly the point they converge to from dX = 0. Angular rows, limits, drives, contacts,
 sliders and the joints that close a loop are left to the iterations.
+
+With `finalize(tree_solve=True)` the same solve, linearised where the sweep left the bodies, also
+ends every iteration (block Gauss-Seidel: the tree's points one block, solved directly; the
+solver's `TreeStep`), so the points hold to second order whatever the sweeps left. Contacts are
+not in it: bodies standing on them sag (README, `benchmarks/tree_solve.py`).
 
 How. Bodies and joints form a forest (a joint closing a loop is left out). The saddle-point system
 [[M~, J^T], [J, -alpha]] [dX; -kappa] = [0; -c] is eliminated from the leaves to the roots and
@@ -191,7 +197,8 @@ def point_gaps(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray,
 
 class Factors(NamedTuple):
     """The saddle-point system of the joint tree eliminated at one configuration, per level slot
-    (L, W): what `solve` needs besides the gaps. Built once per substep by `factor`."""
+    (L, W): what `solve` needs besides the gaps. Built by `factor`: at X* for the initial guess,
+    and where each sweep left the bodies for `tree_solve`."""
 
     indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
     joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
