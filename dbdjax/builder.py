@@ -727,7 +727,8 @@ class ModelBuilder:
     def set_limit_softness(self, joint: int, time_constant: float, damping_ratio: float = 1.0) -> None:
         """Make a joint's limits soft, as MuJoCo's are (MJCF solreflimit = (time_constant,
         damping_ratio)): past a bound, the limit row is an implicit spring and damper per unit of
-        its effective mass, so that the overshoot decays like a damped oscillator of natural
+        its effective mass (the joint's armature included, `add_armature`, as MuJoCo's joint-space
+        mass includes it), so that the overshoot decays like a damped oscillator of natural
         frequency 1 / (time_constant damping_ratio) and that damping ratio, whatever the masses.
         A joint built past a bound eases back over about `time_constant` instead of being snapped
         back within one step; a limit hit at speed is overrun by about speed x time_constant.

@@ -43,7 +43,8 @@ joints   hinge -> hinge, slide -> slider, ball -> ball, free -> nothing. Limits 
          row, so it accelerates bodies and rotor together as in MuJoCo. Not mapped (ignored): the
          armature of free joints, of a planar joint's slides and of hinges merged into a ball.
          Limits are soft as MuJoCo's: solreflimit (timeconst, dampratio) -> `set_limit_softness`,
-         a limit row past its bound is a spring and damper per unit effective mass with natural
+         a limit row past its bound is a spring and damper per unit effective mass (the joint's
+         armature included, as in MuJoCo's joint-space mass) with natural
          frequency 1 / (timeconst dampratio) (timeconst at least 2 dt, MuJoCo's refsafe), so a pose
          built past a limit (the humanoid's knees, the ant's ankles at qpos0) eases back in about
          timeconst instead of being snapped back within one step (`_limit_softness`; solimp's
