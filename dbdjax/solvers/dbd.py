@@ -274,10 +274,13 @@ def solve(
         if options.tree_solve and tree.forest(structure)[0].size:
             # Each iteration ends with the exact solve of the tree's joints, linearised where the
             # sweep left the bodies (refactored each time: a Newton step; factored once at X*, the
-            # chord steps gained energy on a 20-link chain at dt = 1/30).
+            # chord steps gained energy on a 20-link chain at dt = 1/30), with the bodies that touch
+            # something held along their contact normals (without, a standing doll collapsed).
+            held = tree.contact_hold(model, table, contacts) if contacts else None
+
             def solve_points(dx, dtheta, point_multipliers):
                 now = table._replace(dx=dx, dtheta=dtheta)
-                return tree.solve(model, tree.factor(model, now), now, point_multipliers)
+                return tree.solve(model, tree.factor(model, now, held), now, point_multipliers)
 
             tree_step = TreeStep(jax.checkpoint(solve_points), 0, slice(joints.POINT, joints.POINT + 3))
         if options.jacobi:
