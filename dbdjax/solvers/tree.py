@@ -26,7 +26,8 @@ sliders and the joints that close a loop are left to the iterations.
 With `finalize(tree_solve=True)` the same solve, linearised where the sweep left the bodies, also
 ends every iteration (block Gauss-Seidel: the tree's points one block, solved directly; the
 solver's `TreeStep`), so the points hold to second order whatever the sweeps left. Contacts are
-not in it: bodies standing on them sag (README, `benchmarks/tree_solve.py`).
+not rows of it; the bodies that touch something are held along their normals (`contact_hold`),
+or a standing doll's direct steps pull its feet toward the body and it collapses.
 
 How. Bodies and joints form a forest (a joint closing a loop is left out). The saddle-point system
 [[M~, J^T], [J, -alpha]] [dX; -kappa] = [0; -c] is eliminated from the leaves to the roots and
