@@ -55,7 +55,7 @@ import numpy as np
 from dbdjax import math
 from dbdjax.constraints import joints as joint_family
 from dbdjax.constraints.rows import BodyPair, BodySet
-from dbdjax.model import BALL, FIXED, GIMBAL, HINGE, UNIVERSAL, Model, Structure
+from dbdjax.model import BALL, FIXED, GIMBAL, HINGE, UNIVERSAL, Model, Structure, with_world_row
 
 # Joint kinds whose point constraint is a full 3-D one (a slider's acts only across its axis).
 POINT_KINDS = (BALL, HINGE, FIXED, UNIVERSAL, GIMBAL)
@@ -225,7 +225,7 @@ def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray:
     world = model.structure.num_bodies
     dtype = bodies.inv_inertia.dtype
     held = jnp.zeros((world + 1, 6, 6), dtype)
-    mass = jnp.concatenate([model.bodies.mass, jnp.zeros(1, dtype)])  # the world: 0, held by nothing
+    mass = with_world_row(model.bodies.mass)  # the world: 0, held by nothing
     for group, slots in zip(model.structure.contact_groups, contacts, strict=True):
         for side, local in enumerate((slots.local_a, slots.local_b)):
             body = group.bodies.array[:, side]  # (C,)
