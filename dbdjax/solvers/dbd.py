@@ -279,8 +279,7 @@ def solve(
             held = tree.contact_hold(model, table, contacts) if contacts else None
 
             def solve_points(dx, dtheta, point_multipliers):
-                now = table._replace(dx=dx, dtheta=dtheta)
-                return tree.solve(model, tree.factor(model, now, held), now, point_multipliers)
+                return tree.direct_step(model, table._replace(dx=dx, dtheta=dtheta), held, point_multipliers)
 
             tree_step = TreeStep(jax.checkpoint(solve_points), 0, slice(joints.POINT, joints.POINT + 3))
         if options.jacobi:

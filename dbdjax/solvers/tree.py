@@ -209,8 +209,8 @@ class Factors(NamedTuple):
 
 
 # How stiffly `contact_hold` holds a touching body, per contact slot: k = HOLD x its mass. Measured
-# on the standing ragdoll with tree_solve (session 24): 10 let it fall (even held in all three
-# directions), 1000 kept every body within 0.8 mm of its build pose over 4 s.
+# on the standing ragdoll with tree_solve (session 24): 10 (held in all three directions) let it
+# fall, 1000 along the normals kept every body within 0.8 mm of its build pose over 4 s.
 HOLD = 1000.0
 
 
@@ -236,19 +236,20 @@ def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray:
     return held
 
 
-def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None) -> Factors:
+def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None) -> Factors:
     """Eliminate the tree's linearised point constraints at the configuration of `bodies`.
 
     bodies: the solver's per-body table (N + 1, ...), the world as the last row: inv_mass (N + 1,)
     1/kg, inv_inertia (N + 1, 3, 3) M~^-1, and dx, dtheta where the Jacobians are taken.
-    held: (N + 1, 6, 6) added to the bodies' blocks (`contact_hold`), or None.
+    held: (N + 1, 6, 6) added to the bodies' blocks (`contact_hold`), or None. points:
+    `point_gaps(model, bodies)` where the caller has it already.
     """
     inv_mass, inv_inertia = bodies.inv_mass, bodies.inv_inertia
     structure = model.structure
     tree_joint, tree_body, tree_parent = forest(structure)
     world, num_joints = structure.num_bodies, structure.num_joints
     dtype = inv_inertia.dtype
-    _, arm_a, arm_b = point_gaps(model, bodies)
+    _, arm_a, arm_b = point_gaps(model, bodies) if points is None else points
 
     # Body blocks M~ = diag(m 1, I~) (6, 6). The world row is a stand-in identity: empty slots
     # (body = world, zero Jacobians, alpha = 1) then invert identities and leave the world at 0.
@@ -292,7 +293,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None) -> Fa
     return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
 
 
-def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None):
+def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None):
     """The exact step of the linearised point constraints of the joint tree from where `bodies` are.
 
     factors: `factor` of the same model (at this configuration, or at one close to it: then the
@@ -305,7 +306,7 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     """
     dtype = factors.inverses.dtype
     world, num_joints = model.structure.num_bodies, model.structure.num_joints
-    delta, _, _ = point_gaps(model, bodies)
+    delta, _, _ = point_gaps(model, bodies) if points is None else points
     if multipliers is not None:
         delta = delta + model.joints.regularization[:, None] * multipliers
     gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, 3)
@@ -349,4 +350,12 @@ def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarr
     Returns dx (N + 1, 3) m, dtheta (N + 1, 3) rad (world row 0) and kappa (J, 3) kg m, the
     integrated impulse times h on body a of each joint (-kappa on b; 0 outside the tree).
     """
-    return solve(model, factor(model, bodies), bodies)
+    return direct_step(model, bodies)
+
+
+def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
+                multipliers: jnp.ndarray | None = None) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
+    """`factor` and `solve` at the configuration of `bodies`, its joint points measured once:
+    (dx, dtheta) (N + 1, 3) to add and the multiplier step kappa (J, 3)."""
+    points = point_gaps(model, bodies)
+    return solve(model, factor(model, bodies, held, points), bodies, multipliers, points)
