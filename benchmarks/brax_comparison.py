@@ -65,14 +65,21 @@ class Engine:
 # ------------------------------------------------------------------------------------------- dbdjax
 
 
+DBDJAX_VARIANTS = {
+    "dbd": {},
+    "impulse": {"solver": "impulse"},
+    "dbd-tree": {"tree_solve": True},
+    "jacobi-tree": {"jacobi": True, "tree_solve": True},
+}
+
+
 def dbdjax_engine(xml: Path, solver: str) -> Engine:
-    """solver: "dbd", "impulse", or "dbd-tree" (DBD with `tree_solve`: each iteration ends with the
-    direct solve of the joint tree's points)."""
-    kwargs = {"substeps": 1, "iterations": DBD_ITERATIONS}
-    if solver == "dbd-tree":
-        kwargs["tree_solve"] = True
-    elif solver != "dbd":
-        kwargs["solver"] = solver
+    """solver: a key of DBDJAX_VARIANTS: "dbd", "impulse", "dbd-tree" (DBD with `tree_solve`: each
+    iteration ends with the direct solve of the joint tree's points) or "jacobi-tree" (the same
+    with Jacobi sweeps in place of the coloured Gauss-Seidel ones)."""
+    if solver not in DBDJAX_VARIANTS:
+        raise ValueError(f"unknown dbdjax engine {solver!r}: one of {sorted(DBDJAX_VARIANTS)}")
+    kwargs = {"substeps": 1, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]}
     model = dbd.load_mjcf(xml, **kwargs)
     remat_model = dbd.load_mjcf(xml, checkpoint=True, **kwargs)
     control_range = np.asarray(model.control_range)

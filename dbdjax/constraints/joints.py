@@ -302,6 +302,119 @@ def _euler_angles(joint: Joints, flag: JointFlags, pair: BodyPair, rows: frozens
     return math.euler_angles(axes_a, axes_b, universal)
 
 
+def _unmoved(pair: BodyPair) -> BodyPair:
+    """The pair at the prediction X* (nothing moved yet this substep): the rotor rows' reference."""
+    return pair._replace(**{f: jnp.zeros_like(pair.dx_a) for f in ("dx_a", "dx_b", "dtheta_a", "dtheta_b")})
+
+
+def rotor_error(joint: Joints, target: Targets, k: int, change, h: float):
+    """The rotor row of degree of freedom k: q(X* + dX) - q_rotor - h^2 tau / armature, from
+    change = q(X* + dX) - q(X*) (angles wrapped); `project`'s armature comment says why."""
+    armature = jnp.where(joint.armature[k] > 0.0, joint.armature[k], 1.0)
+    return change + target.rotor[k] - h**2 * target.torque[k] / armature
+
+
+def rotor_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair, kind: str, h: float,
+               rows: frozenset[str] = frozenset({"universal", "gimbal"})):  # fmt: skip
+    """All rotor rows of one joint at the pair's configuration: (errors (3,), directions (3, 3)),
+    row k's error (`rotor_error`) and d_k = dq_k / dtheta_b, the row's Jacobian (-d_k on a's
+    rotation, d_k on b's); zero rows where a kind has fewer degrees of freedom. kind: "rotor_hinge",
+    "rotor_euler" (rows: which of universal / gimbal to trace, as `_euler_angles`) or "rotor_ball"."""
+    still = _unmoved(pair)
+    if kind == "rotor_hinge":
+        reference = hinge_angle(joint, still)[0] if target.reference is None else target.reference[0]
+        angle, axis = hinge_angle(joint, pair)
+        error = rotor_error(joint, target, 0, math.wrap_angle(angle - reference), h)
+        zero = jnp.zeros((2, 3), axis.dtype)
+        return jnp.concatenate([error[None], zero[:, 0]]), jnp.concatenate([axis[None], zero])
+    if kind == "rotor_euler":
+        reference = _euler_angles(joint, flag, still, rows)[0] if target.reference is None else target.reference[2]
+        angles, directions = _euler_angles(joint, flag, pair, rows)
+        change = math.wrap_angle(angles - reference)
+        return jnp.stack([rotor_error(joint, target, k, change[k], h) for k in range(3)]), directions
+    quat_a, quat_b = pair.current_quats()
+    predicted = relative_rotation(joint, still.quat_a, still.quat_b)
+    change = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(predicted))
+    error = math.quat_rotate(quat_a, math.quat_log(change)) + target.rotor  # (ball torques are refused)
+    return error, jnp.eye(3, dtype=error.dtype)
+
+
+def lock_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str):
+    """The rotation lock of one joint at the pair's configuration, as the tree's direct solve takes
+    it: (errors (3,), directions (3, 3), basis (3, 3)). Row k has J = (0, d_k) on b and (0, -d_k) on
+    a, error c_k, and multiplier mu_k = basis_k . L, L the lock's multipliers (ROTATION_LOCK, 3);
+    a step d mu adds basis^T d mu to L. Rows of zeros where a kind has fewer. kind: "hinge" (the
+    axle alignment across the bisector, two rows, as `project`'s block), "universal" (its one
+    lock row on m1_a . m2_b) or "fixed" (the whole relative rotation, three rows)."""
+    quat_a, quat_b = pair.current_quats()
+    dtype = quat_a.dtype
+    if kind == "universal":
+        axis_1, axis_2 = row.rotate_pair(quat_a, quat_b, joint.local_axes_a[0], joint.local_axes_b[1])
+        zero = jnp.zeros((2, 3), dtype)
+        error = jnp.stack([math.dot(axis_1, axis_2), 0.0, 0.0]).astype(dtype)
+        first = jnp.eye(3, dtype=dtype)[:1]
+        return error, jnp.concatenate([-math.cross(axis_1, axis_2)[None], zero]), jnp.concatenate([first, zero])
+    if kind == "fixed":
+        basis = jnp.eye(3, dtype=dtype)
+        error = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
+        return error, -basis, basis
+    axis_a, axis_b = row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
+    bisector, _ = math.safe_normalize(axis_a + axis_b)
+    first = math.any_perpendicular(bisector)
+    basis = jnp.stack([first, math.cross(bisector, first), jnp.zeros(3, dtype)])
+    return math.matvec(basis, math.cross(axis_b, axis_a)), -basis, basis
+
+
+class LimitRows(NamedTuple):
+    """A joint's angle limit rows as the tree's direct solve takes them (`limit_rows`): per degree
+    of freedom k, the nearer bound's row oriented along d_k = dq_k / dtheta_b (J = (0, d_k) on b,
+    (0, -d_k) on a), in the compliance form of DBD (49): (J M~^-1 J^T + alpha) d mu = -(r + alpha mu)."""
+
+    directions: jnp.ndarray  # (3, 3) d_k
+    residual: jnp.ndarray  # (3,) r: the error q_k - bound (rigid), or the spring's (K c + D drift) / (K + D)
+    compliance: jnp.ndarray  # (3,) alpha: the regularisation (rigid), or 1 / (K + D) (soft)
+    upper: jnp.ndarray  # (3,) bool: the upper bound's row (its multiplier is -mu), else the lower's (+mu)
+    active: jnp.ndarray  # (3,) bool: past its bound (the rows push only there)
+
+
+def limit_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str, h: float,
+               rows: frozenset[str] = frozenset({"universal", "gimbal"})) -> LimitRows:  # fmt: skip
+    """The angle limits of one joint at the pair's configuration, all its degrees of freedom at
+    once. kind: "has_angle_limits" (a hinge's angle: row 0) or "euler_limited" (a universal or
+    gimbal joint's hinge angles; rows: which kind to trace, as `_euler_angles`).
+
+    The same rows `project` steps one at a time: rigid, or where the joint's limits are soft a
+    spring K = k h^2 (1 / w + armature) and damper D = nu h (1 / w + armature) per unit of the
+    row's effective mass, w the row's response with the joint point held (`rows.soft_limit`)."""
+    if kind == "has_angle_limits":
+        angle, axis = hinge_angle(joint, pair)
+        zero = jnp.zeros((), angle.dtype)
+        angles = jnp.stack([angle, zero, zero])
+        directions = jnp.concatenate([axis[None], jnp.zeros((2, 3), axis.dtype)])
+        lower, upper = jnp.stack([joint.lower, zero, zero]), jnp.stack([joint.upper, zero, zero])
+        limited = jnp.stack([flag.has_angle_limits & flag.hinge, False, False])
+    else:
+        angles, directions = _euler_angles(joint, flag, pair, rows)
+        lower, upper, limited = joint.axis_lower, joint.axis_upper, flag.euler_limited
+    _, error, upper_row = _nearer_bound(angles, lower, upper, periodic=True)
+    active = limited & (error < 0.0)
+    error = jnp.where(upper_row, -error, error)  # q_k - bound: the row's error along d_k
+    # The response along d_k with the joint's point held, as the sweep's soft limit rows step.
+    inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, directions, directions)
+    gap, arm_a, arm_b = joint_points(joint, flag, pair, *pair.current_quats())
+    hold = row.point_hold(pair, arm_a, arm_b, gap, ~(flag.slider | flag.planar))
+    impulse, opened = row.point_impulses(hold, turn_a, turn_b)
+    held = jnp.maximum(inverse_mass + math.dot(opened, impulse), 0.0)
+    mass = 1.0 / jnp.where(held > 0.0, held, 1.0) + joint.armature
+    stiffness, damping = joint.limit_stiffness * h**2 * mass, joint.limit_damping * h * mass
+    drift = math.dot(directions, h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a))
+    spring = jnp.where(stiffness + damping > 0.0, stiffness + damping, 1.0)
+    soft = flag.soft_limits & (held > 0.0)
+    residual = jnp.where(soft, (stiffness * error + damping * drift) / spring, error)
+    compliance = jnp.where(soft, 1.0 / spring, joint.regularization)
+    return LimitRows(directions, residual, compliance, upper_row, active)
+
+
 def slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
     """(travel d = (p_b - p_a) . axis, world axis, arm_a, arm_b) of a slider, SI (65)-(78).
 
@@ -372,45 +485,41 @@ def project(
         def euler_angles_now(pair):  # (3,) rad: t_k at the pair as the rows have moved it
             return measured_angles + math.matvec(euler_directions, (pair.dtheta_b - pair.dtheta_a) - measured_turn)
 
-    if {"rotor_hinge", "rotor_slider", "rotor_ball", "rotor_euler"} & rows:
-        still = pair._replace(**{f: jnp.zeros_like(pair.dx_a) for f in ("dx_a", "dx_b", "dtheta_a", "dtheta_b")})
-
-        def rotor(k, change, active):  # error q(X* + dX) - q_rotor - h^2 tau / armature, and the rule
-            armature = jnp.where(joint.armature[k] > 0.0, joint.armature[k], 1.0)
-            error = change + target.rotor[k] - h**2 * target.torque[k] / armature
-            return error, row.spring(xi, active, joint.armature[k], 0.0)
-
-        def wrapped(angle, reference):
-            return math.wrap_angle(angle - reference)
+    def rotor_rule(k, active):  # a spring row with k h^2 = armature, undamped
+        return row.spring(xi, active, joint.armature[k], 0.0)
 
     if "rotor_hinge" in rows:
-        reference = hinge_angle(joint, still)[0] if target.reference is None else target.reference[0]
-        angle, axis = hinge_angle(joint, pair)
-        error, rule = rotor(0, wrapped(angle, reference), flag.rotor_hinge)
-        pair, lam[ROTOR], hold = row.angular_row(pair, -axis, error, lam[ROTOR], rule, h, hold, held_step=True)
+        error, directions = rotor_rows(joint, flag, target, pair, "rotor_hinge", h)
+        pair, lam[ROTOR], hold = row.angular_row(
+            pair, -directions[0], error[0], lam[ROTOR], rotor_rule(0, flag.rotor_hinge), h, hold, held_step=True
+        )
     if "rotor_slider" in rows:
+        still = _unmoved(pair)
         reference = slider_travel(joint, flag, still)[0] if target.reference is None else target.reference[1]
         travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
-        error, rule = rotor(0, travel - reference, flag.rotor_slider)
-        pair, lam[ROTOR] = row.positional_row(pair, -axis, arm_a, arm_b, error, lam[ROTOR], rule, h)
+        error = rotor_error(joint, target, 0, travel - reference, h)
+        pair, lam[ROTOR] = row.positional_row(
+            pair, -axis, arm_a, arm_b, error, lam[ROTOR], rotor_rule(0, flag.rotor_slider), h
+        )
     if "rotor_ball" in rows:
-        quat_a, quat_b = pair.current_quats()
-        predicted = relative_rotation(joint, still.quat_a, still.quat_b)
-        change = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(predicted))
-        error = math.quat_rotate(quat_a, math.quat_log(change)) + target.rotor  # (ball torques are refused)
+        error, _ = rotor_rows(joint, flag, target, pair, "rotor_ball", h)
         pair, kappa, hold = row.angular_spring(
             pair, error, jnp.stack(lam[ROTOR : ROTOR + 3]), xi, joint.armature[0], 0.0, jnp.inf, flag.rotor_ball, h,
             hold, held_step=True,
         )  # fmt: skip
         lam[ROTOR : ROTOR + 3] = list(kappa)
     if "rotor_euler" in rows:
-        reference = _euler_angles(joint, flag, still, rows)[0] if target.reference is None else target.reference[2]
+        reference = target.reference
+        if reference is None:
+            still = _unmoved(pair)
+            reference = (None, None, _euler_angles(joint, flag, still, rows)[0])
         for k in range(3):
             angles, directions = euler_angles_now(pair), euler_directions
-            error, rule = rotor(k, wrapped(angles[k], reference[k]), flag.rotor_euler[k])
+            error = rotor_error(joint, target, k, math.wrap_angle(angles[k] - reference[2][k]), h)
             pair, lam[ROTOR + k], hold = row.angular_row(
-                pair, -directions[k], error, lam[ROTOR + k], rule, h, hold, held_step=True
-            )
+                pair, -directions[k], error, lam[ROTOR + k], rotor_rule(k, flag.rotor_euler[k]), h, hold,
+                held_step=True,
+            )  # fmt: skip
 
     # Drive (DBD 9): an implicit angular spring/damper toward the control target with the torque
     # limit (114). Hinge: the angle about the axle, wrapped to (-pi, pi]. Ball: the rotation

@@ -327,7 +327,7 @@ def point_hold(
     return PointHold(arm_a, arm_b, solve, jnp.zeros_like(arm_a), gap)
 
 
-def _point_impulses(hold: PointHold, turn_a: jnp.ndarray, turn_b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+def point_impulses(hold: PointHold, turn_a: jnp.ndarray, turn_b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(the point impulse (3,) kg m, the gap s (3,) m) for a turn of a by turn_a and of b by
     -turn_b: s = turn_a x arm_a + turn_b x arm_b opens between the joint points, -K^-1 s closes it."""
     gap = math.cross(turn_a, hold.arm_a) + math.cross(turn_b, hold.arm_b)
@@ -360,7 +360,7 @@ def angular_row(
     """
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     if hold is not None:
-        point_impulse, gap = _point_impulses(hold, turn_a, turn_b)
+        point_impulse, gap = point_impulses(hold, turn_a, turn_b)
         if held_step is not False:  # True, or per joint (soft limits)
             # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
             held_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
@@ -424,7 +424,7 @@ def angular_spring(
         dtheta_b=pair.dtheta_b + math.matvec(pair.inv_inertia_b, step),
     )
     if hold is not None:  # kappa turns a by -I_a^-1 kappa and b by +I_b^-1 kappa
-        point_impulse, _ = _point_impulses(
+        point_impulse, _ = point_impulses(
             hold, -math.matvec(pair.inv_inertia_a, step), -math.matvec(pair.inv_inertia_b, step)
         )
         moved = apply_point_impulse(moved, hold.arm_a, hold.arm_b, point_impulse)

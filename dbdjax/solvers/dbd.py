@@ -10,6 +10,8 @@
                 project all its nodes at once                    (jax.vmap, constraints/*.py)
             write back the displacements of the bodies moved     (one gather: no conflicts)
         with tree_solve: the exact solve of the joint tree's points from there (solvers/tree.py)
+    with tree_solve: one exact solve of the whole joint tree (points, rotation locks, rotors, the
+        limits past their bounds) from where the sweeps ended
 
 Only displacements dX from X* are accumulated; the caller applies them with (36)-(39).
 With `jacobi`, every node is projected at once from the same dX and each body moves by the
@@ -137,12 +139,11 @@ class _Run:
 
 class TreeStep(NamedTuple):
     """The direct solve that ends each iteration with `tree_solve` (solvers/tree.py): a function
-    (dx, dtheta, point multipliers (J, 3)) -> (dx step, dtheta step, multiplier step (J, 3)), the
-    family whose nodes are the joints, and the multiplier columns it steps."""
+    (dx, dtheta, the joints' multipliers (J, joints.NUM_MULTIPLIERS)) -> (dx step, dtheta step,
+    multiplier steps (J, joints.NUM_MULTIPLIERS)), and the family whose nodes are the joints."""
 
     solve: Callable
     family: int
-    columns: slice
 
 
 def gauss_seidel(
@@ -189,11 +190,10 @@ def gauss_seidel(
                 (dx, dtheta), new = jax.lax.scan(functools.partial(colour, run=run), (dx, dtheta), xs)
             updated.append(new)
         if tree_step is not None:
-            f, columns = tree_step.family, tree_step.columns
-            point = node_order(updated, f, multipliers[f])[:, columns]
-            step_dx, step_dtheta, kappa = tree_step.solve(dx, dtheta, point)
+            f = tree_step.family
+            step_dx, step_dtheta, increments = tree_step.solve(dx, dtheta, node_order(updated, f, multipliers[f]))
             dx, dtheta = dx + step_dx, dtheta + step_dtheta
-            updated = [[lam.at[..., columns].add(kappa[index]) if g == f else lam
+            updated = [[lam + increments[index] if g == f else lam
                         for g, index, lam in zip(run.fs, run.index, run_lams, strict=True)]
                        for run, run_lams in zip(runs, updated, strict=True)]  # fmt: skip
         return (dx, dtheta, updated), None
@@ -231,10 +231,10 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
         dtheta = dtheta + jax.ops.segment_sum(dtheta_rows, touched, n + 1) * share
         lams = [m[2] for m in moved]
         if tree_step is not None and tree_step.family in used:
-            k, columns = used.index(tree_step.family), tree_step.columns
-            step_dx, step_dtheta, kappa = tree_step.solve(dx, dtheta, lams[k][:, columns])
+            k = used.index(tree_step.family)
+            step_dx, step_dtheta, increments = tree_step.solve(dx, dtheta, lams[k])
             dx, dtheta = dx + step_dx, dtheta + step_dtheta
-            lams[k] = lams[k].at[:, columns].add(kappa)
+            lams[k] = lams[k] + increments
         return (dx, dtheta, lams), None
 
     start = [multipliers[f] for f in used]
@@ -270,23 +270,35 @@ def solve(
             dx, dtheta, kappa = tree.initial_guess(model, table)
             table = table._replace(dx=dx, dtheta=dtheta)
             multipliers[0] = multipliers[0].at[:, joints.POINT : joints.POINT + 3].set(kappa)
-        tree_step = None
+        tree_step = angular = None
         if options.tree_solve and tree.forest(structure)[0].size:
-            # Each iteration ends with the exact solve of the tree's joints, linearised where the
+            # Each sweep ends with the exact solve of the tree's joint points, linearised where the
             # sweep left the bodies (refactored each time: a Newton step; factored once at X*, the
             # chord steps gained energy on a 20-link chain at dt = 1/30), with the bodies that touch
             # something held along their contact normals (without, a standing doll collapsed).
             held = tree.contact_hold(model, table, contacts) if contacts else None
 
-            def solve_points(dx, dtheta, point_multipliers):
-                return tree.direct_step(model, table._replace(dx=dx, dtheta=dtheta), held, point_multipliers)
+            def direct(dx, dtheta, joint_multipliers, targets=None):
+                bodies = table._replace(dx=dx, dtheta=dtheta)
+                return tree.direct_step(model, bodies, held, joint_multipliers, targets)
 
-            tree_step = TreeStep(jax.checkpoint(solve_points), 0, slice(joints.POINT, joints.POINT + 3))
+            tree_step = TreeStep(jax.checkpoint(direct), 0)
+            if tree.has_angular_rows(structure):
+                angular = (all_families[0].params[1], h)
         if options.jacobi:
             dx, dtheta, multipliers = jacobi(all_families, table, options.iterations, multipliers, tree_step)
         else:
             dx, dtheta, multipliers = gauss_seidel(structure.colours, all_families, table, options.iterations,
                                                     multipliers, tree_step)  # fmt: skip
+        if angular is not None:
+            # Then one solve of the whole of every tree joint: its point, rotation lock, rotors and
+            # the angle limits past their bounds (`tree.angular_rows`). Once, at the end: inside the
+            # sweeps the soft limits let go of what the solve had pushed past a bound and Brax's ant
+            # blew up within 4 steps; with the points alone at the end of each sweep, a heavy rotor
+            # or a limit was left to the sweeps (the ant sank to 0.18 m).
+            step_dx, step_dtheta, increments = jax.checkpoint(direct)(dx, dtheta, multipliers[0], angular)
+            dx, dtheta = dx + step_dx, dtheta + step_dtheta
+            multipliers[0] = multipliers[0] + increments
     else:
         dx = dtheta = jnp.zeros((n + 1, 3), dtype)
     contact_lams = multipliers[len(all_families) - len(contacts) :]

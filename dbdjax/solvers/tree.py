@@ -150,15 +150,20 @@ def _transpose(a: jnp.ndarray) -> jnp.ndarray:
     return jnp.swapaxes(a, -1, -2)
 
 
-def _inverse6(matrix: jnp.ndarray) -> jnp.ndarray:
-    """Inverse of (..., 6, 6) matrices by 3x3 blocks (Schur complement of the top-left block).
+def _inverse(matrix: jnp.ndarray) -> jnp.ndarray:
+    """Inverse of (..., 3m, 3m) matrices by 3x3 blocks: the top-left (3m - 3) block inverted the
+    same way, then the Schur complement of it.
 
-    The blocks here are M~ plus what the children add: the translational block is m 1 plus a
-    positive semi-definite term, so it and its Schur complement are invertible.
+    The matrices here are positive definite: a body's M~ plus what its children add (the
+    translational block m 1 plus a positive semi-definite term), or a joint's rows' effective
+    inverse mass plus their compliance, its point rows first (their block K + alpha is invertible).
     """
-    a, b = matrix[..., :3, :3], matrix[..., :3, 3:]
-    c, d = matrix[..., 3:, :3], matrix[..., 3:, 3:]
-    a_inv = math.inverse3(a)
+    n = matrix.shape[-1]
+    if n == 3:
+        return math.inverse3(matrix)
+    a, b = matrix[..., :-3, :-3], matrix[..., :-3, -3:]
+    c, d = matrix[..., -3:, :-3], matrix[..., -3:, -3:]
+    a_inv = _inverse(a)
     a_inv_b, c_a_inv = _mm(a_inv, b), _mm(c, a_inv)
     s_inv = math.inverse3(d - _mm(c, a_inv_b))
     top_right = -_mm(a_inv_b, s_inv)
@@ -196,6 +201,160 @@ def point_gaps(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray,
     return jax.vmap(one)(model.joints, joint_family.flags(structure), pairs)
 
 
+def _row_groups(structure: Structure) -> tuple[list, list, list]:
+    """The joints whose angular rows the direct solve takes, by kind: (lock groups, rotor groups,
+    limit groups), each group (kind, the universal / gimbal kind to trace, (J, 3) bool: the rows of
+    each joint it covers), only kinds that occur. Host side, numpy."""
+    flag = joint_family.flags(structure)
+    first = np.arange(3) == 0
+    kind = structure.joint_kind.array
+    locks = [
+        ("hinge", frozenset(), (kind == HINGE)[:, None] & (np.arange(3) < 2)),
+        ("universal", frozenset(), (kind == UNIVERSAL)[:, None] & first),
+        ("fixed", frozenset(), np.repeat((kind == FIXED)[:, None], 3, axis=1)),
+    ]
+    universal = np.asarray(flag.universal)[:, None]
+    euler_rotor, euler_limit = np.asarray(flag.rotor_euler), np.asarray(flag.euler_limited)
+    hinge_limit = (np.asarray(flag.has_angle_limits) & np.asarray(flag.hinge))[:, None] & first
+    rotors = [
+        ("rotor_hinge", frozenset(), np.asarray(flag.rotor_hinge)[:, None] & first),
+        ("rotor_euler", frozenset({"universal"}), euler_rotor & universal),
+        ("rotor_euler", frozenset({"gimbal"}), euler_rotor & ~universal),
+        ("rotor_ball", frozenset(), np.repeat(np.asarray(flag.rotor_ball)[:, None], 3, axis=1)),
+    ]
+    limits = [
+        ("has_angle_limits", frozenset(), hinge_limit),
+        ("euler_limited", frozenset({"universal"}), euler_limit & universal),
+        ("euler_limited", frozenset({"gimbal"}), euler_limit & ~universal),
+    ]
+    return tuple([g for g in groups if g[2].any()] for groups in (locks, rotors, limits))
+
+
+class AngularRows(NamedTuple):
+    """The joints' angular rows the direct solve takes beside their points, (J, K, ...) each: their
+    rotor rows (K = 3, where the model has armature), then their hinge and universal / gimbal angle
+    limits (3 more, where it has them), each in the compliance form of DBD (49) with J = (0, d) on
+    b and (0, -d) on a. Rows a joint lacks are off (J = 0, no error)."""
+
+    on: jnp.ndarray  # (J, K) bool
+    directions: jnp.ndarray  # (J, K, 3) d
+    compliance: jnp.ndarray  # (J, K) alpha
+    residual: jnp.ndarray  # (J, K) c + alpha lambda now (0 where off)
+    lock_basis: jnp.ndarray | None  # (J, 3, 3) a lock row's multiplier: basis_k . L (`joints.lock_rows`)
+    upper: jnp.ndarray | None  # (J, 3) bool: a limit row is its upper bound's (multiplier -mu), else its lower's
+
+
+def has_angular_rows(structure: Structure) -> bool:
+    """Whether the direct solve takes angular rows for this model (`angular_rows` is not None)."""
+    return any(_row_groups(structure))
+
+
+def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None, targets: joint_family.Targets,
+                 h: float) -> AngularRows | None:  # fmt: skip
+    """Every joint's rotor and angle limit rows at the configuration of `bodies`, or None for a model
+    with neither. bodies: the solver's per-body table (N + 1, ...), the world as the last row.
+    multipliers: (J, joints.NUM_MULTIPLIERS) each joint's multipliers so far this substep (None:
+    zero). targets: the substep's `joints.Targets` (rotor offsets, torques, references). h: s.
+
+    A rotor is a spring row with k h^2 = armature toward where the rotor's inertia carries its
+    coordinate (`joints.rotor_rows`): alpha = 1 / armature. A limit past its bound pushes as a
+    rigid row or, soft, as a spring and damper (`joints.limit_rows`); the rows are those past
+    their bounds where this solve is taken. Without them the direct step closes the points by
+    swinging joints whose rotors are heavy (Brax's ant: armature 40-120 x its legs' inertia) and
+    bending them through their limits, and the sweeps must fight that back each iteration.
+    """
+    structure = model.structure
+    lock_groups, rotor_groups, limit_groups = _row_groups(structure)
+    if not (lock_groups or rotor_groups or limit_groups):
+        return None
+    num_joints, dtype = structure.num_joints, bodies.inv_inertia.dtype
+    lam = jnp.zeros((num_joints, joint_family.NUM_MULTIPLIERS), dtype) if multipliers is None else multipliers
+    flag = joint_family.flags(structure)
+    ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
+
+    def measured(groups, measure):
+        """measure(joint, flags, target, pair, kind, traced) per group, on its own joints only (no
+        angle of a joint without those axes): each output (J, 3, ...) with zeros elsewhere."""
+        found = None
+        for kind, traced, rows in groups:
+            members = np.flatnonzero(rows.any(axis=1))
+            pick = lambda x, members=members: x[members]  # noqa: E731
+            pairs = jax.tree.map(lambda column, members=members: column[ends[members]], bodies)
+            one = lambda j, f, t, two, kind=kind, traced=traced: measure(j, f, t, BodyPair.of(two), kind, traced)  # noqa: E731
+            values = jax.vmap(one)(jax.tree.map(pick, model.joints), jax.tree.map(pick, flag),
+                                   jax.tree.map(pick, targets), pairs)  # fmt: skip
+            if found is None:
+                found = [jnp.zeros((num_joints,) + v.shape[1:], v.dtype) for v in values]
+            found = [f.at[members].set(v) for f, v in zip(found, values, strict=True)]
+        return found
+
+    parts = []  # (on, directions, compliance, residual) per block of three rows
+    upper = basis = None
+    if lock_groups:
+        error, directions, basis = measured(
+            lock_groups, lambda j, f, t, pair, kind, traced: joint_family.lock_rows(j, f, pair, kind)
+        )
+        on = np.any([rows for _, _, rows in lock_groups], axis=0)
+        compliance = jnp.broadcast_to(model.joints.regularization[:, None], on.shape)
+        taken = jnp.einsum("jkc,jc->jk", basis, lam[:, joint_family.ROTATION_LOCK : joint_family.ROTATION_LOCK + 3])
+        parts.append((jnp.asarray(on), directions, compliance, error + compliance * taken))
+    if rotor_groups:
+        error, directions = measured(
+            rotor_groups, lambda j, f, t, pair, kind, traced: joint_family.rotor_rows(j, f, t, pair, kind, h, traced)
+        )
+        on = np.any([rows for _, _, rows in rotor_groups], axis=0)
+        armature = jnp.where(np.asarray(flag.rotor_ball)[:, None], model.joints.armature[:, :1], model.joints.armature)
+        compliance = jnp.where(on, 1.0 / jnp.where(on, armature, 1.0), 1.0)
+        taken = lam[:, joint_family.ROTOR : joint_family.ROTOR + 3]
+        parts.append((jnp.asarray(on), directions, compliance, error + compliance * taken))
+    if limit_groups:
+        limits = measured(limit_groups, lambda j, f, t, pair, kind, traced: tuple(
+            joint_family.limit_rows(j, f, pair, kind, h, traced)))  # fmt: skip
+        limits = joint_family.LimitRows(*limits)
+        hinge = np.asarray(flag.hinge)[:, None]
+        lower_taken = jnp.where(hinge, lam[:, joint_family.ANGLE_LOWER, None], lam[:, _EULER_LOWER])
+        upper_taken = jnp.where(hinge, lam[:, joint_family.ANGLE_UPPER, None], lam[:, _EULER_UPPER])
+        taken = jnp.where(limits.upper, -upper_taken, lower_taken)
+        on = np.any([rows for _, _, rows in limit_groups], axis=0) & limits.active
+        parts.append((on, limits.directions, limits.compliance, limits.residual + limits.compliance * taken))
+        upper = limits.upper
+    on, directions, compliance, residual = (jnp.concatenate(column, axis=1) for column in zip(*parts, strict=True))
+    return AngularRows(
+        on=on,
+        directions=jnp.where(on[..., None], directions, 0.0),
+        compliance=jnp.where(on, compliance, 1.0),
+        residual=jnp.where(on, residual, 0.0),
+        lock_basis=basis,
+        upper=upper,
+    )
+
+
+_EULER_LOWER = joint_family.EULER_LOWER + np.arange(3)
+_EULER_UPPER = joint_family.EULER_UPPER + np.arange(3)
+
+
+def angular_increments(structure: Structure, rows: AngularRows, step: jnp.ndarray) -> jnp.ndarray:
+    """(J, joints.NUM_MULTIPLIERS): the multiplier steps of the angular rows' solve `step` (J, K),
+    in the joint multipliers' layout (a limit's mu to its lower row, or -mu to its upper row)."""
+    lock_groups, rotor_groups, limit_groups = _row_groups(structure)
+    increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), step.dtype)
+    if lock_groups:
+        lock = jnp.einsum("jkc,jk->jc", rows.lock_basis, step[:, :3])
+        increments = increments.at[:, joint_family.ROTATION_LOCK : joint_family.ROTATION_LOCK + 3].set(lock)
+        step = step[:, 3:]
+    if rotor_groups:
+        increments = increments.at[:, joint_family.ROTOR : joint_family.ROTOR + 3].set(step[:, :3])
+        step = step[:, 3:]
+    if limit_groups:
+        hinge = np.asarray(joint_family.flags(structure).hinge)
+        lower, upper = jnp.where(rows.upper, 0.0, step), jnp.where(rows.upper, -step, 0.0)
+        increments = increments.at[:, _EULER_LOWER].set(jnp.where(hinge[:, None], 0.0, lower))
+        increments = increments.at[:, _EULER_UPPER].set(jnp.where(hinge[:, None], 0.0, upper))
+        increments = increments.at[:, joint_family.ANGLE_LOWER].set(jnp.where(hinge, lower[:, 0], 0.0))
+        increments = increments.at[:, joint_family.ANGLE_UPPER].set(jnp.where(hinge, upper[:, 0], 0.0))
+    return increments
+
+
 class Factors(NamedTuple):
     """The saddle-point system of the joint tree eliminated at one configuration, per level slot
     (L, W): what `solve` needs besides the gaps. Built by `factor`: at X* for the initial guess,
@@ -204,8 +363,8 @@ class Factors(NamedTuple):
     indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
     joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
     empty: np.ndarray  # (L, W) bool
-    matrices: jnp.ndarray  # (L, W, 3, 13) [J_child | J_parent | alpha]
-    inverses: jnp.ndarray  # (L, W, 6, 9) [D_b^-1 | S_j^-1 in the top three rows]
+    matrices: jnp.ndarray  # (L, W, R, 13) [J_child | J_parent | alpha], R = 3 point rows (+ 3 rotor rows)
+    inverses: jnp.ndarray  # (L, W, max(6, R), 6 + R) [D_b^-1 | S_j^-1], each in its top rows
 
 
 # How stiffly `contact_hold` holds a touching body, per contact slot: k = HOLD x its mass. Measured
@@ -236,13 +395,15 @@ def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray:
     return held
 
 
-def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None) -> Factors:
+def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None,
+           angular: AngularRows | None = None) -> Factors:  # fmt: skip
     """Eliminate the tree's linearised point constraints at the configuration of `bodies`.
 
     bodies: the solver's per-body table (N + 1, ...), the world as the last row: inv_mass (N + 1,)
     1/kg, inv_inertia (N + 1, 3, 3) M~^-1, and dx, dtheta where the Jacobians are taken.
     held: (N + 1, 6, 6) added to the bodies' blocks (`contact_hold`), or None. points:
-    `point_gaps(model, bodies)` where the caller has it already.
+    `point_gaps(model, bodies)` where the caller has it already. angular: `angular_rows` at the
+    same configuration, eliminated with the joints' points (R = 3 + K rows a joint), or None (R = 3).
     """
     inv_mass, inv_inertia = bodies.inv_mass, bodies.inv_inertia
     structure = model.structure
@@ -271,54 +432,74 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
     j_child = _point_jacobian(sign, jnp.where(child_is_a[..., None], arm_a[joint], arm_b[joint]))
     j_parent = _point_jacobian(parent_sign, jnp.where(child_is_a[..., None], arm_b[joint], arm_a[joint]))
     alpha = jnp.where(empty, 1.0, model.joints.regularization[joint])  # S = 1 in empty slots
+    alpha = jnp.broadcast_to(alpha[..., None], alpha.shape + (3,))  # (L, W, 3): one per row
+    if angular is not None:
+        # K more rows per joint (`angular_rows`): J = (0, d) on b, (0, -d) on a. Rows that are off
+        # have J = 0 and alpha = 1 (decoupled, no error); so do empty slots.
+        on = angular.on[joint] & ~empty[..., None]  # (L, W, K)
+        directions = jnp.where(on[..., None], angular.directions[joint], 0.0)  # (L, W, K, 3)
+        rotation = jnp.concatenate([jnp.zeros_like(directions), directions], axis=-1)
+        j_child = jnp.concatenate([j_child, -sign[..., None, None] * rotation], axis=-2)  # (L, W, R, 6)
+        j_parent = jnp.concatenate([j_parent, -parent_sign[..., None, None] * rotation], axis=-2)
+        alpha = jnp.concatenate([alpha, jnp.where(on, angular.compliance[joint], 1.0)], axis=-1)
 
     # Each level's inputs, carry and outputs are packed into one array apiece: on CPU every array a
     # loop step slices or updates is one more kernel, and the levels run one after another.
     indices = np.stack([tree_body, tree_parent], axis=-1)  # (L, W, 2)
-    matrices = jnp.concatenate(
-        [j_child, j_parent, jnp.broadcast_to(alpha[..., None, None], alpha.shape + (3, 1))], axis=-1
-    )  # (L, W, 3, 13)
-    eye3 = jnp.eye(3, dtype=dtype)
+    matrices = jnp.concatenate([j_child, j_parent, alpha[..., None]], axis=-1)  # (L, W, R, 13)
+    rows = matrices.shape[-2]
+    eye = jnp.eye(rows, dtype=dtype)
+    height = max(6, rows)  # each slot's D_b^-1 (6, 6) and S_j^-1 (R, R) side by side, padded to this
+
+    def padded(matrix):
+        return jnp.concatenate([matrix, jnp.zeros((len(matrix), height - matrix.shape[1], matrix.shape[2]), dtype)], 1)
 
     def eliminate(carry, level):
         index, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
-        jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 0, 12]
-        d_inv = _inverse6(carry[index[:, 0]])
-        s_inv = math.inverse3(alpha[:, None, None] * eye3 + _mm(_mm(jc, d_inv), _transpose(jc)))
+        jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12]
+        d_inv = _inverse(carry[index[:, 0]])
+        s_inv = _inverse(alpha[:, :, None] * eye + _mm(_mm(jc, d_inv), _transpose(jc)))
         carry = carry.at[index[:, 1]].add(_mm(_mm(_transpose(jp), s_inv), jp))
-        s_rows = jnp.concatenate([s_inv, jnp.zeros((len(s_inv), 3, 3), dtype)], axis=-2)  # (W, 6, 3)
-        return carry, jnp.concatenate([d_inv, s_rows], axis=-1)  # (W, 6, 9)
+        return carry, jnp.concatenate([padded(d_inv), padded(s_inv)], axis=-1)  # (W, max(6, R), 6 + R)
 
     _, inverses = jax.lax.scan(eliminate, blocks, (indices, matrices))
     return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
 
 
-def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None):
+def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
+          angular: AngularRows | None = None):  # fmt: skip
     """The exact step of the linearised point constraints of the joint tree from where `bodies` are.
 
     factors: `factor` of the same model (at this configuration, or at one close to it: then the
     step is a chord step, exact for the gaps to first order in how far the bodies moved since).
     bodies: the solver's per-body table (N + 1, ...) with its current dx, dtheta. multipliers:
     (J, 3) kg m, the point multipliers each joint has taken so far this substep (None: zero), which
-    a regularised joint's constraint c + alpha lambda = 0 reads (DBD (47)).
-    Returns dx (N + 1, 3) m and dtheta (N + 1, 3) rad to add (world row 0) and kappa (J, 3) kg m,
-    the multiplier step of each joint on its body a (-kappa on b; 0 outside the tree).
+    a regularised joint's constraint c + alpha lambda = 0 reads (DBD (47)). angular: the
+    `angular_rows` the factors were built with (their residuals read their own multipliers), or None.
+    Returns dx (N + 1, 3) m and dtheta (N + 1, 3) rad to add (world row 0) and kappa (J, R), the
+    multiplier step of each joint's rows (a point's: the impulse on body a, -kappa on b; 0 outside
+    the tree).
     """
     dtype = factors.inverses.dtype
     world, num_joints = model.structure.num_bodies, model.structure.num_joints
     delta, _, _ = point_gaps(model, bodies) if points is None else points
     if multipliers is not None:
         delta = delta + model.joints.regularization[:, None] * multipliers
-    gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, 3)
+    rows = factors.matrices.shape[-2]
+    if rows != 3 + (0 if angular is None else angular.on.shape[1]):
+        raise ValueError("tree.solve: angular rows must be those the factors were built with")
+    if angular is not None:
+        delta = jnp.concatenate([delta, angular.residual], axis=-1)  # (J, R)
+    gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, R)
 
     def eliminate(z, level):
         index, packed, inverse, c = level  # z: (N + 1, 6), what the children added so far
         jc, jp = packed[..., :6], packed[..., 6:12]
-        d_inv, s_inv = inverse[..., :6], inverse[:, :3, 6:]
+        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
         z_body = z[index[:, 0]]
         z_joint = -c - _mv(_mm(jc, d_inv), z_body)
         z = z.at[index[:, 1]].add(_mv(_mm(_transpose(jp), s_inv), z_joint))
-        return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 9)
+        return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
     _, right = jax.lax.scan(
         eliminate, jnp.zeros((world + 1, 6), dtype), (factors.indices, factors.matrices, factors.inverses, gap)
@@ -327,7 +508,7 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     def substitute(x, level):
         index, packed, inverse, z = level
         jc, jp = packed[..., :6], packed[..., 6:12]
-        d_inv, s_inv = inverse[..., :6], inverse[:, :3, 6:]
+        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
         kappa = _mv(s_inv, z[:, 6:] - _mv(jp, x[index[:, 1]]))
         x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _mv(_transpose(jc), kappa)))
         return x, kappa
@@ -338,7 +519,7 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     )  # fmt: skip
     # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
     tree_joint = np.where(factors.empty, num_joints, factors.joint)
-    kappa = jnp.zeros((num_joints + 1, 3), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
+    kappa = jnp.zeros((num_joints + 1, rows), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
     return x[:, :3], x[:, 3:], kappa
 
 
@@ -350,12 +531,24 @@ def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarr
     Returns dx (N + 1, 3) m, dtheta (N + 1, 3) rad (world row 0) and kappa (J, 3) kg m, the
     integrated impulse times h on body a of each joint (-kappa on b; 0 outside the tree).
     """
-    return direct_step(model, bodies)
+    dx, dtheta, increments = direct_step(model, bodies)
+    return dx, dtheta, increments[:, joint_family.POINT : joint_family.POINT + 3]
 
 
 def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
-                multipliers: jnp.ndarray | None = None) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
-    """`factor` and `solve` at the configuration of `bodies`, its joint points measured once:
-    (dx, dtheta) (N + 1, 3) to add and the multiplier step kappa (J, 3)."""
+                multipliers: jnp.ndarray | None = None, targets: tuple | None = None,
+                ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
+    """`factor` and `solve` at the configuration of `bodies`, its joints measured once: (dx, dtheta)
+    (N + 1, 3) to add and the multiplier steps (J, joints.NUM_MULTIPLIERS) of the rows solved.
+    multipliers: (J, joints.NUM_MULTIPLIERS) so far this substep (None: zero). targets: (the
+    substep's `joints.Targets`, h) to solve the joints' rotor and angle limit rows with their
+    points (`angular_rows`), or None for the points alone."""
     points = point_gaps(model, bodies)
-    return solve(model, factor(model, bodies, held, points), bodies, multipliers, points)
+    angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets)
+    point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
+    factors = factor(model, bodies, held, points, angular)
+    dx, dtheta, kappa = solve(model, factors, bodies, point_multipliers, points, angular)
+    increments = jnp.zeros((model.structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
+    if angular is not None:
+        increments = angular_increments(model.structure, angular, kappa[:, 3:])
+    return dx, dtheta, increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3])
