@@ -69,14 +69,16 @@ DBDJAX_VARIANTS = {
     "dbd": {},
     "impulse": {"solver": "impulse"},
     "dbd-tree": {"tree_solve": True},
+    "dbd-tree-1": {"tree_solve": True, "iterations": 1},  # one sweep, then the direct solves
     "jacobi-tree": {"jacobi": True, "tree_solve": True},
 }
 
 
 def dbdjax_engine(xml: Path, solver: str) -> Engine:
-    """solver: a key of DBDJAX_VARIANTS: "dbd", "impulse", "dbd-tree" (DBD with `tree_solve`: each
-    iteration ends with the direct solve of the joint tree's points) or "jacobi-tree" (the same
-    with Jacobi sweeps in place of the coloured Gauss-Seidel ones)."""
+    """solver: a key of DBDJAX_VARIANTS: "dbd", "impulse", "dbd-tree" (DBD with `tree_solve`: the
+    direct solves of the joint tree, solvers/tree.py), "dbd-tree-1" (the same with one sweep instead
+    of DBD_ITERATIONS) or "jacobi-tree" (with Jacobi sweeps in place of the coloured Gauss-Seidel
+    ones)."""
     if solver not in DBDJAX_VARIANTS:
         raise ValueError(f"unknown dbdjax engine {solver!r}: one of {sorted(DBDJAX_VARIANTS)}")
     kwargs = {"substeps": 1, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]}

@@ -38,7 +38,7 @@ import scenes  # noqa: E402  tests/scenes.py: the chain
 
 RESULTS = ROOT / "benchmarks" / "results"
 HUMANOID = ROOT / "tests" / "assets" / "humanoid.xml"
-SETTINGS = [("sweeps", 4), ("sweeps", 8), ("tree_solve", 2), ("tree_solve", 3), ("tree_solve", 4)]
+SETTINGS = [("sweeps", 4), ("sweeps", 8), ("tree_solve", 1), ("tree_solve", 2), ("tree_solve", 4)]
 STATES = [10, 49, 50, 52, 100, 200, 400]  # steps of the drop: free fall, the landing, lying
 
 

@@ -444,7 +444,7 @@ class Options:
     contact_compliance: float = 0.0  # m/N: 0 is rigid; > 0 softens contacts (smoother gradients)
     restitution_iterations: int = 2  # Gauss-Seidel sweeps of the velocity pass
     initial_guess: str = "zero"  # "zero": dX = 0 (Algorithm 1); "tree": exact solve of the tree's linearised points
-    tree_solve: bool = False  # each iteration ends with the exact solve of the tree's linearised points
+    tree_solve: bool = False  # direct solves of the joint tree: points after each sweep, whole joints after the last
     baumgarte: float = 0.2  # impulse solver: beta of SI (17) for contacts, springs' links, distances
 
 

@@ -320,3 +320,26 @@ def test_tree_solve_lands_the_ant_as_many_sweeps_do():
         final, after_landing, height = results[name]
         assert abs(final - reference_energy) < 0.3 and after_landing < final + 0.3  # no rebound
         assert abs(height - reference_height) < 0.03
+
+
+@pytest.mark.slow  # about 2 minutes on 2 cores (the float64 grad of the ant's whole-joint solve compiles slowly)
+def test_gradients_through_tree_solve_match_finite_differences(float64):
+    # Brax's ant in the air with tree_solve (its whole joints in the last direct solve: locks, rotors,
+    # the ankles' active soft limits): d(torso height after 5 steps) / d(controls), against central
+    # differences. Every step here has the same rows active, so the step map is smooth.
+    model = dbd.load_mjcf(ASSETS / "ant.xml", iterations=2, tree_solve=True)
+    start = dbd.init(model)
+    controls = jnp.asarray(np.random.default_rng(0).uniform(-0.5, 0.5, size=(5, model.num_controls)))
+
+    def height(controls):
+        final, _ = dbd.rollout(model, start, controls)
+        return final.pos[0, 2] + 0.1 * jnp.sum(final.ang_vel[1:] ** 2)
+
+    gradient = np.asarray(jax.jit(jax.grad(height))(controls))
+    assert np.all(np.isfinite(gradient)) and np.abs(gradient).max() > 1e-6
+    value = jax.jit(height)
+    direction = np.random.default_rng(1).normal(size=controls.shape)
+    epsilon = 1e-6
+    numeric = (value(controls + epsilon * direction) - value(controls - epsilon * direction)) / (2 * epsilon)
+    print(f"directional derivative: finite differences {float(numeric):.8f}, grad {np.sum(gradient * direction):.8f}")
+    assert abs(float(numeric) - float(np.sum(gradient * direction))) < 1e-5 * max(1.0, abs(float(numeric)))

@@ -1,5 +1,5 @@
-"""An exact linear solve of the point constraints over the joint tree: Algorithm 1's initial guess,
-and the direct step that ends each iteration with `tree_solve`.
+"""An exact linear solve over the joint tree: Algorithm 1's initial guess, and the direct steps of
+`tree_solve` (the points after each sweep, then the joints whole after the last).
 
 Why. Gauss-Seidel moves a correction one joint per colour sweep, so from the guess dX = 0 it
 cannot build the tension of a long chain within a few iterations (DBD 10.1: "it requires N - 1
@@ -25,9 +25,17 @@ sliders and the joints that close a loop are left to the iterations.
 
 With `finalize(tree_solve=True)` the same solve, linearised where the sweep left the bodies, also
 ends every iteration (block Gauss-Seidel: the tree's points one block, solved directly; the
-solver's `TreeStep`), so the points hold to second order whatever the sweeps left. Contacts are
-not rows of it; the bodies that touch something are held along their normals (`contact_hold`),
-or a standing doll's direct steps pull its feet toward the body and it collapses.
+solver's `TreeStep`), so the points hold to second order whatever the sweeps left. After the last
+sweep one more solve takes each tree joint whole: with its point, its rotation lock (a hinge's
+axle alignment, a universal's lock, a fixed joint's), its rotors (armature) and its hinge or
+universal / gimbal angle limits past their bounds, each in the compliance form of DBD (49) beside
+the point rows (`angular_rows`; up to 12 rows a joint instead of 3). Without them the direct
+steps closed the points by swinging joints whose rotors are heavy and bending them through their
+limits, which the sweeps then fought (Brax's ant sank to 0.18 m). Those rows stay out of the
+solves inside the sweeps: there the sweeps' soft limits let go of what a solve had pushed past a
+bound and the ant blew up within 4 steps. Contacts are not rows of any of them; the bodies that
+touch something are held along their normals (`contact_hold`), or a standing doll's direct steps
+pull its feet toward the body and it collapses.
 
 How. Bodies and joints form a forest (a joint closing a loop is left out). The saddle-point system
 [[M~, J^T], [J, -alpha]] [dX; -kappa] = [0; -c] is eliminated from the leaves to the roots and
@@ -40,7 +48,8 @@ body b has the eliminated block D_b (its mass plus the stiffness its own childre
     leaves -> roots:  z_j = -c_j - J_jb D_b^-1 z_b;   D_p += J_jp^T S_j^-1 J_jp;   z_p += J_jp^T S_j^-1 z_j
     roots -> leaves:  kappa_j = S_j^-1 (z_j - J_jp dX_p);   dX_b = D_b^-1 (z_b + J_jb^T kappa_j)
 
-with D_b = M~_b and z_b = 0 before the children of b are added, and dX = 0 for the world.
+with D_b = M~_b and z_b = 0 before the children of b are added, and dX = 0 for the world. With the
+angular rows, c_j stacks each row's c + alpha lambda and S_j is (R, R), inverted by 3 x 3 blocks.
 The schedule (`schedule`) is static: numpy on the host, at trace time.
 """
 
