@@ -1113,7 +1113,7 @@ class ModelBuilder:
           touch something are held there along their normals (`tree.contact_hold`), so the body
           above moves to close the joints (the standing ragdoll stays within 0.8 mm of its pose;
           without the hold it collapsed). After the last sweep one more direct solve takes each
-          tree joint whole: point, rotation lock, rotors (armature) and the angle limits past their
+          tree joint whole: point, rotation lock, rotors (armature) and the soft angle limits past their
           bounds, so a joint with a heavy rotor or pressed on a limit is solved with its point
           (Brax's dropped ant lands at 1 iteration as at 32 sweeps alone). DBD solver only; off by
           default.

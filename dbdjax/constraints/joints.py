@@ -383,9 +383,10 @@ def limit_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str, h: fl
     once. kind: "has_angle_limits" (a hinge's angle: row 0) or "euler_limited" (a universal or
     gimbal joint's hinge angles; rows: which kind to trace, as `_euler_angles`).
 
-    The same rows `project` steps one at a time: rigid, or where the joint's limits are soft a
-    spring K = k h^2 (1 / w + armature) and damper D = nu h (1 / w + armature) per unit of the
-    row's effective mass, w the row's response with the joint point held (`rows.soft_limit`)."""
+    The same rows `project` steps one at a time: where the joint's limits are soft (the tree takes
+    only those) a spring K = k h^2 (1 / w + armature) and damper D = nu h (1 / w + armature) per
+    unit of the row's effective mass, w the row's response with the joint point held
+    (`rows.soft_limit`); rigid, alpha the regularisation, where not (or where w = 0)."""
     if kind == "has_angle_limits":
         angle, axis = hinge_angle(joint, pair)
         zero = jnp.zeros((), angle.dtype)

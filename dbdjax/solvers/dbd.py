@@ -11,7 +11,7 @@
             write back the displacements of the bodies moved     (one gather: no conflicts)
         with tree_solve: the exact solve of the joint tree's points from there (solvers/tree.py)
     with tree_solve: one exact solve of the whole joint tree (points, rotation locks, rotors, the
-        limits past their bounds) from where the sweeps ended
+        soft limits past their bounds) from where the sweeps ended
 
 Only displacements dX from X* are accumulated; the caller applies them with (36)-(39).
 With `jacobi`, every node is projected at once from the same dX and each body moves by the
@@ -292,11 +292,12 @@ def solve(
                                                     multipliers, tree_step)  # fmt: skip
         if angular is not None:
             # Then one solve of the whole of every tree joint: its point, rotation lock, rotors and
-            # the angle limits past their bounds (`tree.angular_rows`). Once, at the end: inside the
+            # the soft angle limits past their bounds (`tree.angular_rows`). Once, at the end: inside the
             # sweeps the soft limits let go of what the solve had pushed past a bound and Brax's ant
             # blew up within 4 steps; with the points alone at the end of each sweep, a heavy rotor
             # or a limit was left to the sweeps (the ant sank to 0.18 m).
-            step_dx, step_dtheta, increments = jax.checkpoint(direct)(dx, dtheta, multipliers[0], angular)
+            whole = jax.checkpoint(lambda dx, dtheta, lam: direct(dx, dtheta, lam, angular))
+            step_dx, step_dtheta, increments = whole(dx, dtheta, multipliers[0])
             dx, dtheta = dx + step_dx, dtheta + step_dtheta
             multipliers[0] = multipliers[0] + increments
     else:

@@ -28,14 +28,15 @@ ends every iteration (block Gauss-Seidel: the tree's points one block, solved di
 solver's `TreeStep`), so the points hold to second order whatever the sweeps left. After the last
 sweep one more solve takes each tree joint whole: with its point, its rotation lock (a hinge's
 axle alignment, a universal's lock, a fixed joint's), its rotors (armature) and its hinge or
-universal / gimbal angle limits past their bounds, each in the compliance form of DBD (49) beside
-the point rows (`angular_rows`; up to 12 rows a joint instead of 3). Without them the direct
-steps closed the points by swinging joints whose rotors are heavy and bending them through their
-limits, which the sweeps then fought (Brax's ant sank to 0.18 m). Those rows stay out of the
+universal / gimbal soft angle limits past their bounds, each in the compliance form of DBD (49)
+beside the point rows (`angular_rows`; up to 12 rows a joint instead of 3). Without them the
+direct steps closed the points by swinging joints whose rotors are heavy and bending them through
+their limits, which the sweeps then fought (Brax's ant sank to 0.18 m). Those rows stay out of the
 solves inside the sweeps: there the sweeps' soft limits let go of what a solve had pushed past a
-bound and the ant blew up within 4 steps. Contacts are not rows of any of them; the bodies that
-touch something are held along their normals (`contact_hold`), or a standing doll's direct steps
-pull its feet toward the body and it collapses.
+bound and the ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they
+made the standing ragdoll, its knees on their limits, creep up and fall after about 5 s.
+Contacts are not rows of any of them; the bodies that touch something are held along their
+normals (`contact_hold`), or a standing doll's direct steps pull its feet toward the body and it collapses.
 
 How. Bodies and joints form a forest (a joint closing a loop is left out). The saddle-point system
 [[M~, J^T], [J, -alpha]] [dX; -kappa] = [0; -c] is eliminated from the leaves to the roots and
@@ -223,8 +224,11 @@ def _row_groups(structure: Structure) -> tuple[list, list, list]:
         ("fixed", frozenset(), np.repeat((kind == FIXED)[:, None], 3, axis=1)),
     ]
     universal = np.asarray(flag.universal)[:, None]
-    euler_rotor, euler_limit = np.asarray(flag.rotor_euler), np.asarray(flag.euler_limited)
-    hinge_limit = (np.asarray(flag.has_angle_limits) & np.asarray(flag.hinge))[:, None] & first
+    # Soft limits only: with the rigid ones in the solve, the standing ragdoll (knees resting on their
+    # rigid limits) crept upward and fell after about 5 s; the sweeps keep those.
+    soft = np.asarray(flag.soft_limits)[:, None]
+    euler_rotor, euler_limit = np.asarray(flag.rotor_euler), np.asarray(flag.euler_limited) & soft
+    hinge_limit = (np.asarray(flag.has_angle_limits) & np.asarray(flag.hinge))[:, None] & first & soft
     rotors = [
         ("rotor_hinge", frozenset(), np.asarray(flag.rotor_hinge)[:, None] & first),
         ("rotor_euler", frozenset({"universal"}), euler_rotor & universal),
@@ -240,10 +244,11 @@ def _row_groups(structure: Structure) -> tuple[list, list, list]:
 
 
 class AngularRows(NamedTuple):
-    """The joints' angular rows the direct solve takes beside their points, (J, K, ...) each: their
-    rotor rows (K = 3, where the model has armature), then their hinge and universal / gimbal angle
-    limits (3 more, where it has them), each in the compliance form of DBD (49) with J = (0, d) on
-    b and (0, -d) on a. Rows a joint lacks are off (J = 0, no error)."""
+    """The joints' angular rows the direct solve takes beside their points, (J, K, ...) each: three
+    rows of rotation lock, of rotors and of hinge or universal / gimbal soft angle limits, each block where
+    the model has any (K = 3, 6 or 9), each row in the compliance form of DBD (49) with J = (0, d) on
+    b and (0, -d) on a. Rows a joint lacks, and limits not past their bounds, are off (J = 0, no
+    error)."""
 
     on: jnp.ndarray  # (J, K) bool
     directions: jnp.ndarray  # (J, K, 3) d
@@ -260,15 +265,17 @@ def has_angular_rows(structure: Structure) -> bool:
 
 def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None, targets: joint_family.Targets,
                  h: float) -> AngularRows | None:  # fmt: skip
-    """Every joint's rotor and angle limit rows at the configuration of `bodies`, or None for a model
-    with neither. bodies: the solver's per-body table (N + 1, ...), the world as the last row.
+    """Every joint's rotation lock, rotor and angle limit rows at the configuration of `bodies`, or
+    None for a model with none of them. bodies: the solver's per-body table (N + 1, ...), the world as the last row.
     multipliers: (J, joints.NUM_MULTIPLIERS) each joint's multipliers so far this substep (None:
     zero). targets: the substep's `joints.Targets` (rotor offsets, torques, references). h: s.
 
-    A rotor is a spring row with k h^2 = armature toward where the rotor's inertia carries its
-    coordinate (`joints.rotor_rows`): alpha = 1 / armature. A limit past its bound pushes as a
-    rigid row or, soft, as a spring and damper (`joints.limit_rows`); the rows are those past
-    their bounds where this solve is taken. Without them the direct step closes the points by
+    A lock is rigid, alpha the joint's regularisation (`joints.lock_rows`: a hinge's axle alignment,
+    without which the solve turned hinges off their axles and the sweeps turned them back). A rotor
+    is a spring row with k h^2 = armature toward where the rotor's inertia carries its
+    coordinate (`joints.rotor_rows`): alpha = 1 / armature. A soft limit past its bound pushes as a
+    spring and damper (`joints.limit_rows`); the rows are those past their bounds where this solve
+    is taken (rigid limits are left to the sweeps, `_row_groups`). Without them the direct step closes the points by
     swinging joints whose rotors are heavy (Brax's ant: armature 40-120 x its legs' inertia) and
     bending them through their limits, and the sweeps must fight that back each iteration.
     """
@@ -372,7 +379,7 @@ class Factors(NamedTuple):
     indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
     joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
     empty: np.ndarray  # (L, W) bool
-    matrices: jnp.ndarray  # (L, W, R, 13) [J_child | J_parent | alpha], R = 3 point rows (+ 3 rotor rows)
+    matrices: jnp.ndarray  # (L, W, R, 13) [J_child | J_parent | alpha], R = 3 point rows (+ K angular rows)
     inverses: jnp.ndarray  # (L, W, max(6, R), 6 + R) [D_b^-1 | S_j^-1], each in its top rows
 
 
@@ -406,7 +413,8 @@ def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray:
 
 def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None,
            angular: AngularRows | None = None) -> Factors:  # fmt: skip
-    """Eliminate the tree's linearised point constraints at the configuration of `bodies`.
+    """Eliminate the tree's linearised point constraints (and angular rows) at the configuration of
+    `bodies`.
 
     bodies: the solver's per-body table (N + 1, ...), the world as the last row: inv_mass (N + 1,)
     1/kg, inv_inertia (N + 1, 3, 3) M~^-1, and dx, dtheta where the Jacobians are taken.
@@ -550,8 +558,8 @@ def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
     """`factor` and `solve` at the configuration of `bodies`, its joints measured once: (dx, dtheta)
     (N + 1, 3) to add and the multiplier steps (J, joints.NUM_MULTIPLIERS) of the rows solved.
     multipliers: (J, joints.NUM_MULTIPLIERS) so far this substep (None: zero). targets: (the
-    substep's `joints.Targets`, h) to solve the joints' rotor and angle limit rows with their
-    points (`angular_rows`), or None for the points alone."""
+    substep's `joints.Targets`, h) to solve the joints' rotation locks, rotors and angle limits with
+    their points (`angular_rows`), or None for the points alone."""
     points = point_gaps(model, bodies)
     angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets)
     point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
