@@ -34,7 +34,7 @@ direct steps closed the points by swinging joints whose rotors are heavy and ben
 their limits, which the sweeps then fought (Brax's ant sank to 0.18 m). Those rows stay out of the
 solves inside the sweeps: there the sweeps' soft limits let go of what a solve had pushed past a
 bound and the ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they
-made the standing ragdoll, its knees on their limits, creep up and fall after about 5 s.
+made the standing ragdoll, its knees on their limits, creep up and fall within 10 s.
 Contacts are not rows of any of them; the bodies that touch something are held along their
 normals (`contact_hold`), or a standing doll's direct steps pull its feet toward the body and it collapses.
 
@@ -225,7 +225,7 @@ def _row_groups(structure: Structure) -> tuple[list, list, list]:
     ]
     universal = np.asarray(flag.universal)[:, None]
     # Soft limits only: with the rigid ones in the solve, the standing ragdoll (knees resting on their
-    # rigid limits) crept upward and fell after about 5 s; the sweeps keep those.
+    # rigid limits) crept upward and had fallen by 10 s; the sweeps keep those.
     soft = np.asarray(flag.soft_limits)[:, None]
     euler_rotor, euler_limit = np.asarray(flag.rotor_euler), np.asarray(flag.euler_limited) & soft
     hinge_limit = (np.asarray(flag.has_angle_limits) & np.asarray(flag.hinge))[:, None] & first & soft
