@@ -339,6 +339,25 @@ def rotor_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair,
     return error, jnp.eye(3, dtype=error.dtype)
 
 
+def axle_misalignment(joint: Joints, quat_a, quat_b):
+    """(c = axis_b x axis_a (3,), the unit bisector of the two axes (3,)): a hinge's axle alignment
+    error (DBD 6 (73)-(80), SI 2.4.1; |c| = sin of (73)'s angle), locked across the bisector."""
+    axis_a, axis_b = row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
+    return math.cross(axis_b, axis_a), math.safe_normalize(axis_a + axis_b)[0]
+
+
+def rotation_lock_error(joint: Joints, quat_a, quat_b):
+    """(3,) minus the world rotation vector of X: a slider's or fixed joint's whole-rotation lock
+    error (SI (53)), with dc/dtheta_a = 1."""
+    return -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
+
+
+def universal_lock(joint: Joints, quat_a, quat_b):
+    """(c = m1_a . m2_b, dc/dtheta_a = m1_a x m2_b): the universal joint's lock row (`project`)."""
+    axis_1, axis_2 = row.rotate_pair(quat_a, quat_b, joint.local_axes_a[0], joint.local_axes_b[1])
+    return math.dot(axis_1, axis_2), math.cross(axis_1, axis_2)
+
+
 def lock_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str):
     """The rotation lock of one joint at the pair's configuration, as the tree's direct solve takes
     it: (errors (3,), directions (3, 3), basis (3, 3)). Row k has J = (0, d_k) on b and (0, -d_k) on
@@ -349,20 +368,18 @@ def lock_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str):
     quat_a, quat_b = pair.current_quats()
     dtype = quat_a.dtype
     if kind == "universal":
-        axis_1, axis_2 = row.rotate_pair(quat_a, quat_b, joint.local_axes_a[0], joint.local_axes_b[1])
+        error, direction_a = universal_lock(joint, quat_a, quat_b)
         zero = jnp.zeros((2, 3), dtype)
-        error = jnp.stack([math.dot(axis_1, axis_2), 0.0, 0.0]).astype(dtype)
         first = jnp.eye(3, dtype=dtype)[:1]
-        return error, jnp.concatenate([-math.cross(axis_1, axis_2)[None], zero]), jnp.concatenate([first, zero])
+        errors = jnp.concatenate([error[None], zero[:, 0]])
+        return errors, jnp.concatenate([-direction_a[None], zero]), jnp.concatenate([first, zero])
     if kind == "fixed":
         basis = jnp.eye(3, dtype=dtype)
-        error = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
-        return error, -basis, basis
-    axis_a, axis_b = row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
-    bisector, _ = math.safe_normalize(axis_a + axis_b)
+        return rotation_lock_error(joint, quat_a, quat_b), -basis, basis
+    misalignment, bisector = axle_misalignment(joint, quat_a, quat_b)
     first = math.any_perpendicular(bisector)
     basis = jnp.stack([first, math.cross(bisector, first), jnp.zeros(3, dtype)])
-    return math.matvec(basis, math.cross(axis_b, axis_a)), -basis, basis
+    return math.matvec(basis, misalignment), -basis, basis
 
 
 class LimitRows(NamedTuple):
@@ -406,8 +423,9 @@ def limit_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str, h: fl
     hold = row.point_hold(pair, arm_a, arm_b, gap, ~(flag.slider | flag.planar))
     impulse, opened = row.point_impulses(hold, turn_a, turn_b)
     held = jnp.maximum(inverse_mass + math.dot(opened, impulse), 0.0)
-    mass = 1.0 / jnp.where(held > 0.0, held, 1.0) + joint.armature
-    stiffness, damping = joint.limit_stiffness * h**2 * mass, joint.limit_damping * h * mass
+    # K = k' / w with k' the sweeps' spring per unit effective mass (`rows.soft_limit_scale`).
+    per_mass = row.soft_limit_scale(joint.armature, held) / jnp.where(held > 0.0, held, 1.0)
+    stiffness, damping = joint.limit_stiffness * h**2 * per_mass, joint.limit_damping * h * per_mass
     drift = math.dot(directions, h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a))
     spring = jnp.where(stiffness + damping > 0.0, stiffness + damping, 1.0)
     soft = flag.soft_limits & (held > 0.0)
@@ -578,15 +596,12 @@ def project(
     # (SI (53)), c = minus the world rotation vector of X.
     if "rotation_lock" in rows:
         quat_a, quat_b = pair.current_quats()
-        axis_a, axis_b = row.rotate_pair(quat_a, quat_b, joint.local_axis_a, joint.local_axis_b)
         axle = flag.hinge | flag.planar
-        bisector, _ = math.safe_normalize(axis_a + axis_b)
-        eye = jnp.eye(3, dtype=axis_a.dtype)
+        misalignment, bisector = axle_misalignment(joint, quat_a, quat_b)
+        eye = jnp.eye(3, dtype=quat_a.dtype)
         across = jnp.where(axle, eye - bisector[:, None] * bisector[None, :], eye)
-        misalignment = math.cross(axis_b, axis_a)
         if "rotation_locked" in rows:  # else every lock is an axle's: no relative rotation to trace
-            lock = -math.quat_rotate(quat_a, math.quat_log(relative_rotation(joint, quat_a, quat_b)))
-            error = jnp.where(axle, misalignment, lock)
+            error = jnp.where(axle, misalignment, rotation_lock_error(joint, quat_a, quat_b))
         else:
             error = misalignment
         pair, locked = row.angular_block(
@@ -602,12 +617,10 @@ def project(
     # normalising a vanishing vector. Not the angle form acos(c) - pi/2 along the normalised cross
     # product: same row at the solution, but c is polynomial in the orientations.
     if "universal" in rows:
-        quat_a, quat_b = pair.current_quats()
-        axis_1, axis_2 = row.rotate_pair(quat_a, quat_b, joint.local_axes_a[0], joint.local_axes_b[1])
+        error, direction_a = universal_lock(joint, *pair.current_quats())
         pair, lam[ROTATION_LOCK], hold = row.angular_row(
-            pair, math.cross(axis_1, axis_2), math.dot(axis_1, axis_2), lam[ROTATION_LOCK], hard(flag.universal),
-            hold=hold,
-        )  # fmt: skip
+            pair, direction_a, error, lam[ROTATION_LOCK], hard(flag.universal), hold=hold
+        )
 
     # Angle limits: the twist of X about a's axis (SI (101)-(106) via swing-twist), kept in
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83), projected as

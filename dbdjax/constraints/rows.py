@@ -196,6 +196,13 @@ def motor(relaxation, active, speed_h, bound) -> Rule:
     return Rule(relaxation, 0.0, active, speed=True, speed_h=speed_h, bound=bound)
 
 
+def soft_limit_scale(armature, inverse_mass):
+    """m w = 1 + armature w: the soft limit's effective mass m = 1 / w + armature (the rotor's
+    inertia on the row's coordinate included, as MuJoCo's joint-space mass) in units of 1 / w, the
+    factor on its spring and damper per unit of the bodies' response w (`soft_limit`)."""
+    return 1.0 + armature * inverse_mass
+
+
 def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
     """d lambda of one row under `rule`; 0 where the row is inactive or cannot move anything.
 
@@ -204,7 +211,7 @@ def multiplier_step(rule: Rule, error, drift, inverse_mass, multiplier):
     """
     if rule.soft:  # a limit: rigid, or where softened the spring rule with k = omega^2 m, nu = 2 zeta omega m
         # per unit of the effective mass m = 1 / w + armature: omega^2 h^2 and 2 zeta omega h times m w.
-        per_mass = 1.0 + rule.armature * inverse_mass
+        per_mass = soft_limit_scale(rule.armature, inverse_mass)
         stiffness_h2, damping_h = rule.stiffness_h2 * per_mass, rule.damping_h * per_mass
         share = 1.0 / (1.0 + stiffness_h2 + damping_h)
         error_weight = jnp.where(rule.softened, stiffness_h2 * share, 1.0)
