@@ -412,6 +412,9 @@ class Structure:
     joint_rotor: StaticArray = StaticArray(np.zeros((0, 3), bool))
     # (J,) bool: which joints' limits are soft (`Joints.limit_stiffness`). Empty: none.
     joint_soft_limits: StaticArray = StaticArray(np.zeros((0,), bool))
+    # (J,) bool: the joint's drive has a finite torque limit (DBD (114)) at build time, which the
+    # tree's whole-joint solve must respect (`solvers.tree.direct_step`). Empty: none.
+    joint_drive_limited: StaticArray = StaticArray(np.zeros((0,), bool))
 
     @property
     def num_colours(self) -> int:

@@ -268,7 +268,8 @@ def test_direct_solve_of_whole_joints_is_a_newton_step_the_sweeps_agree_with(flo
     targets = (families[0].params[1], h)
     multipliers = jnp.zeros((model.structure.num_joints, joints.NUM_MULTIPLIERS))
     rows = tree.angular_rows(model, table, multipliers, *targets)
-    assert np.asarray(rows.on).sum(axis=0).tolist() == [8, 8, 0, 8, 0, 0, 4, 0, 0]  # locks, rotors, limits
+    # Rows on: locks, rotors, limits, drives (the ant's joint damping is a drive without stiffness).
+    assert np.asarray(rows.on).sum(axis=0).tolist() == [8, 8, 0, 8, 0, 0, 4, 0, 0, 8, 0, 0]
     gaps = []
     for _ in range(3):
         dx, dtheta, increments = tree.direct_step(model, table, None, multipliers, targets)
@@ -328,6 +329,74 @@ def test_tree_solve_lands_the_ant_as_many_sweeps_do():
 
 
 @pytest.mark.slow  # about 2 minutes on 2 cores (the float64 grad of the ant's whole-joint solve compiles slowly)
+def driven_arm(kinds, max_torque=1e4, damping=100.0, **finalize):
+    """A horizontal arm of 0.5 m, 2 kg links from the world, each joint of `kinds` ("hinge",
+    "ball", "universal") driven toward its build pose with stiffness 2000 N m/rad."""
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    parent, joint_indices = dbd.WORLD, []
+    for i, kind in enumerate(kinds):
+        body = b.add_body(pos=(0.5 * i + 0.25, 0, 1), mass=2.0, inertia=(0.001, 2.0 * 0.5**2 / 12, 2.0 * 0.5**2 / 12))
+        anchor = (0.5 * i, 0, 1)
+        if kind == "hinge":
+            joint = b.add_hinge_joint(parent, body, anchor=anchor, axis=(0, 1, 0))
+        elif kind == "ball":
+            joint = b.add_ball_joint(parent, body, anchor=anchor)
+        else:
+            joint = b.add_universal_joint(parent, body, anchor=anchor, axes=((0, 0, 1), (0, 1, 0)))
+        b.add_drive(joint, stiffness=2000.0, damping=damping, max_torque=max_torque)
+        joint_indices.append(joint)
+        parent = body
+    return b.finalize(dt=1 / 60, **finalize)
+
+
+def _static_sag(num_links, length=0.5, mass=2.0, stiffness=2000.0, g=9.81):
+    """Each joint's angle (rad) where every drive's torque k theta carries the links beyond it."""
+    theta = np.zeros(num_links)
+    for _ in range(100):  # fixed point of theta = tau(theta) / k
+        heading = np.cumsum(theta)
+        joint_x = np.concatenate([[0.0], np.cumsum(length * np.cos(heading))])[:num_links]
+        centre_x = joint_x + 0.5 * length * np.cos(heading)
+        theta = np.array([mass * g * np.sum(centre_x[i:] - joint_x[i]) for i in range(num_links)]) / stiffness
+    return theta
+
+
+def _settled_sag(model, seconds=5.0):
+    """Each link's pitch below its parent's (rad) after `seconds` with zero control, and the largest
+    angular speed then (rad/s)."""
+    steps = round(seconds / model.options.dt)
+    final, _ = jax.jit(lambda s: dbd.rollout(model, s, jnp.zeros((steps, model.num_controls))))(dbd.init(model))
+    forward = np.asarray(math.quat_rotate(final.quat, jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0]), final.pos.shape)))
+    heading = np.arctan2(-forward[:, 2], forward[:, 0])  # pitch below the horizontal
+    return np.diff(np.concatenate([[0.0], heading])), float(jnp.abs(final.ang_vel).max())
+
+
+def test_tree_solve_holds_a_driven_arm_at_its_static_sag(float64):
+    # The whole-joint solve takes the drives (DBD 9) as spring rows beside the points: a horizontal
+    # arm of three links on a hinge, a ball and a universal joint settles where each drive's torque
+    # k theta carries the links beyond it (0.022, 0.0098, 0.0025 rad). One sweep and the solve land
+    # within 2e-6 rad of it (measured); 4 sweeps alone sag 0.27 rad too far at the root; the
+    # solve without the drives (before) let the root sag 0.61 rad.
+    expected = _static_sag(3)
+    solved, speed = _settled_sag(driven_arm(("hinge", "ball", "universal"), iterations=1, tree_solve=True))
+    swept, _ = _settled_sag(driven_arm(("hinge", "ball", "universal"), iterations=4))
+    print(f"\nsag {expected} rad; tree_solve 1 iteration {solved}; 4 sweeps {swept}")
+    assert np.abs(solved - expected).max() < 1e-5 and speed < 1e-6
+    assert np.abs(swept - expected).max() > 0.1
+
+
+def test_tree_solve_keeps_a_drive_within_its_torque_limit(float64):
+    # One link whose drive's torque limit (2 N m) is below its weight's moment (4.9 N m): it swings
+    # down and about where its limit's torque meets gravity, as 64 sweeps have it (1.0839 rad at
+    # 10 s); one sweep and the solve follow them within 1e-5 rad. Had the solve taken the drive as
+    # a linear row past its limit it would hold the link up (0.0025 rad: 2.5 times the limit).
+    ends = {}
+    for name, finalize in {"sweeps": {"iterations": 64}, "tree": {"iterations": 1, "tree_solve": True}}.items():
+        ends[name], _ = _settled_sag(driven_arm(("hinge",), max_torque=2.0, damping=20.0, **finalize), seconds=10.0)
+    print(f"\nangle at 10 s: 64 sweeps {ends['sweeps'][0]:.7f} rad, tree_solve 1 iteration {ends['tree'][0]:.7f}")
+    assert ends["sweeps"][0] > 0.9  # fallen far below the horizontal
+    assert abs(ends["tree"][0] - ends["sweeps"][0]) < 1e-5
+
+
 def test_gradients_through_tree_solve_match_finite_differences(float64):
     # Brax's ant in the air with tree_solve (its whole joints in the last direct solve: locks, rotors,
     # the ankles' active soft limits): d(torso height after 5 steps) / d(controls), against central

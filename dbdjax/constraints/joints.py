@@ -434,6 +434,57 @@ def limit_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str, h: fl
     return LimitRows(directions, residual, compliance, upper_row, active)
 
 
+def ball_drive_error(joint: Joints, target: Targets, quat_a, quat_b):
+    """(3,) rad: the world rotation vector of E = X T^-1 (X the relative rotation from rest, T =
+    exp(target) in a's frame), a ball drive's error with dc/dtheta_b = 1 (DBD 9)."""
+    goal = math.quat_exp(target.drive)
+    error_rotation = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
+    return math.quat_rotate(quat_a, math.quat_log(error_rotation))
+
+
+class DriveRows(NamedTuple):
+    """A joint's drive rows as the tree's direct solve takes them (`drive_rows`): per degree of
+    freedom k, a spring row along d_k (J = (0, d_k) on b, (0, -d_k) on a) in the compliance form of
+    DBD (49): (J M~^-1 J^T + alpha) d kappa = -(r + alpha kappa), with K = k h^2, D = nu h,
+    r = (K c + D drift) / (K + D) and alpha = 1 / (K + D) (the spring rule of DBD 9, (112))."""
+
+    directions: jnp.ndarray  # (3, 3) d_k
+    residual: jnp.ndarray  # (3,) r
+    compliance: jnp.ndarray  # (3,) alpha
+    active: jnp.ndarray  # (3,) bool: a spring on that row (K + D > 0)
+
+
+def drive_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair, kind: str, h: float,
+               rows: frozenset[str] = frozenset({"universal", "gimbal"})) -> DriveRows:  # fmt: skip
+    """The drive of one joint at the pair's configuration, all its degrees of freedom at once, as
+    `project` steps them one at a time (its torque limit is not in these rows: the caller leaves a
+    saturated drive out). kind: "hinge_drive" (row 0), "euler_drive" (a universal or gimbal joint's
+    hinge angles; rows: which kind to trace, as `_euler_angles`) or "ball_drive" (three rows)."""
+    dtype = pair.quat_a.dtype
+    zero = jnp.zeros((), dtype)
+    if kind == "hinge_drive":
+        angle, axis = hinge_angle(joint, pair)
+        errors = jnp.stack([math.wrap_angle(angle - target.drive[0]), zero, zero])
+        directions = jnp.concatenate([axis[None], jnp.zeros((2, 3), dtype)])
+        stiffness = jnp.stack([joint.drive_stiffness, zero, zero])
+        damping = jnp.stack([joint.drive_damping, zero, zero])
+    elif kind == "euler_drive":
+        angles, directions = _euler_angles(joint, flag, pair, rows)
+        errors = math.wrap_angle(angles - target.drive)
+        stiffness, damping = joint.axis_stiffness, joint.axis_damping
+    else:
+        errors = ball_drive_error(joint, target, *pair.current_quats())
+        directions = jnp.eye(3, dtype=dtype)
+        stiffness = jnp.broadcast_to(joint.drive_stiffness, (3,))
+        damping = jnp.broadcast_to(joint.drive_damping, (3,))
+    spring_h2, damper_h = stiffness * h**2, damping * h
+    drift = math.matvec(directions, h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a))
+    total = spring_h2 + damper_h
+    active = total > 0.0
+    safe = jnp.where(active, total, 1.0)
+    return DriveRows(directions, (spring_h2 * errors + damper_h * drift) / safe, 1.0 / safe, active)
+
+
 def slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):
     """(travel d = (p_b - p_a) . axis, world axis, arm_a, arm_b) of a slider, SI (65)-(78).
 
@@ -553,10 +604,7 @@ def project(
             row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h, hold,
         )  # fmt: skip
     if "ball_drive" in rows:
-        quat_a, quat_b = pair.current_quats()
-        goal = math.quat_exp(target.drive)  # the target relative rotation, in a's frame
-        error_rotation = math.quat_multiply(relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
-        error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
+        error = ball_drive_error(joint, target, *pair.current_quats())
         pair, kappa, hold = row.angular_spring(
             pair, error, jnp.stack(lam[DRIVE : DRIVE + 3]), xi, stiffness_h2, damping_h, torque_bound,
             flag.ball_drive, h, hold,

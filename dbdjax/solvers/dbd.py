@@ -11,7 +11,7 @@
             write back the displacements of the bodies moved     (one gather: no conflicts)
         with tree_solve: the exact solve of the joint tree's points from there (solvers/tree.py)
     with tree_solve: one exact solve of the whole joint tree (points, rotation locks, rotors, the
-        soft limits past their bounds) from where the sweeps ended
+        soft limits past their bounds, drives within their torque limits) from where the sweeps ended
 
 Only displacements dX from X* are accumulated; the caller applies them with (36)-(39).
 With `jacobi`, every node is projected at once from the same dX and each body moves by the
@@ -291,8 +291,8 @@ def solve(
             dx, dtheta, multipliers = gauss_seidel(structure.colours, all_families, table, options.iterations,
                                                     multipliers, tree_step)  # fmt: skip
         if angular is not None:
-            # Then one solve of the whole of every tree joint: its point, rotation lock, rotors and
-            # the soft angle limits past their bounds (`tree.angular_rows`). Once, at the end: inside the
+            # Then one solve of the whole of every tree joint: its point, rotation lock, rotors, the
+            # soft angle limits past their bounds and its drive (`tree.angular_rows`). Once, at the end: inside the
             # sweeps the soft limits let go of what the solve had pushed past a bound and Brax's ant
             # blew up within 4 steps; with the points alone at the end of each sweep, a heavy rotor
             # or a limit was left to the sweeps (the ant sank to 0.18 m).

@@ -27,13 +27,14 @@ With `finalize(tree_solve=True)` the same solve, linearised where the sweep left
 ends every iteration (block Gauss-Seidel: the tree's points one block, solved directly; the
 solver's `TreeStep`), so the points hold to second order whatever the sweeps left. After the last
 sweep one more solve takes each tree joint whole: with its point, its rotation lock (a hinge's
-axle alignment, a universal's lock, a fixed joint's), its rotors (armature) and its hinge or
-universal / gimbal soft angle limits past their bounds, each in the compliance form of DBD (49)
-beside the point rows (`angular_rows`; up to 12 rows a joint instead of 3). Without them the
-direct steps closed the points by swinging joints whose rotors are heavy and bending them through
-their limits, which the sweeps then fought (Brax's ant sank to 0.18 m). Those rows stay out of the
-solves inside the sweeps: there the sweeps' soft limits let go of what a solve had pushed past a
-bound and the ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they
+axle alignment, a universal's lock, a fixed joint's), its rotors (armature), its hinge or
+universal / gimbal soft angle limits past their bounds and its drive (DBD 9) while inside its
+torque limit, each in the compliance form of DBD (49) beside the point rows (`angular_rows`; up to
+15 rows a joint instead of 3). Without them the direct steps closed the points by swinging joints
+whose rotors are heavy and bending them through their limits, which the sweeps then fought (Brax's
+ant sank to 0.18 m), and undid what the sweeps' drives had held (a driven arm sagged 0.61 rad).
+Those rows stay out of the solves inside the sweeps: there the sweeps' soft limits let go of what a
+solve had pushed past a bound and the ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they
 made the standing ragdoll, its knees on their limits, creep up and fall within 10 s.
 Contacts are not rows of any of them; the bodies that touch something are held along their
 normals (`contact_hold`), or a standing doll's direct steps pull its feet toward the body and it collapses.
@@ -211,9 +212,9 @@ def point_gaps(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray,
     return jax.vmap(one)(model.joints, joint_family.flags(structure), pairs)
 
 
-def _row_groups(structure: Structure) -> tuple[list, list, list]:
+def _row_groups(structure: Structure) -> tuple[list, list, list, list]:
     """The joints whose angular rows the direct solve takes, by kind: (lock groups, rotor groups,
-    limit groups), each group (kind, the universal / gimbal kind to trace, (J, 3) bool: the rows of
+    limit groups, drive groups), each group (kind, the universal / gimbal kind to trace, (J, 3) bool: the rows of
     each joint it covers), only kinds that occur. Host side, numpy."""
     flag = joint_family.flags(structure)
     first = np.arange(3) == 0
@@ -240,15 +241,22 @@ def _row_groups(structure: Structure) -> tuple[list, list, list]:
         ("euler_limited", frozenset({"universal"}), euler_limit & universal),
         ("euler_limited", frozenset({"gimbal"}), euler_limit & ~universal),
     ]
-    return tuple([g for g in groups if g[2].any()] for groups in (locks, rotors, limits))
+    drive = np.asarray(flag.euler_drive)[:, None] & (np.arange(3) < np.where(flag.universal, 2, 3)[:, None])
+    drives = [
+        ("hinge_drive", frozenset(), np.asarray(flag.hinge_drive)[:, None] & first),
+        ("euler_drive", frozenset({"universal"}), drive & universal),
+        ("euler_drive", frozenset({"gimbal"}), drive & ~universal),
+        ("ball_drive", frozenset(), np.repeat(np.asarray(flag.ball_drive)[:, None], 3, axis=1)),
+    ]
+    return tuple([g for g in groups if g[2].any()] for groups in (locks, rotors, limits, drives))
 
 
 class AngularRows(NamedTuple):
     """The joints' angular rows the direct solve takes beside their points, (J, K, ...) each: three
-    rows of rotation lock, of rotors and of hinge or universal / gimbal soft angle limits, each block where
-    the model has any (K = 3, 6 or 9), each row in the compliance form of DBD (49) with J = (0, d) on
-    b and (0, -d) on a. Rows a joint lacks, and limits not past their bounds, are off (J = 0, no
-    error)."""
+    rows of rotation lock, of rotors, of hinge or universal / gimbal soft angle limits and of drive,
+    each block where the model has any (K = 3 to 12, in that order), each row in the compliance form
+    of DBD (49) with J = (0, d) on b and (0, -d) on a. Rows a joint lacks, limits not past their
+    bounds and drives at their torque limit are off (J = 0, no error)."""
 
     on: jnp.ndarray  # (J, K) bool
     directions: jnp.ndarray  # (J, K, 3) d
@@ -264,11 +272,13 @@ def has_angular_rows(structure: Structure) -> bool:
 
 
 def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None, targets: joint_family.Targets,
-                 h: float) -> AngularRows | None:  # fmt: skip
-    """Every joint's rotation lock, rotor and angle limit rows at the configuration of `bodies`, or
-    None for a model with none of them. bodies: the solver's per-body table (N + 1, ...), the world as the last row.
+                 h: float, saturated: jnp.ndarray | None = None) -> AngularRows | None:  # fmt: skip
+    """Every joint's rotation lock, rotor, angle limit and drive rows at the configuration of
+    `bodies`, or None for a model with none of them. bodies: the solver's per-body table (N + 1,
+    ...), the world as the last row.
     multipliers: (J, joints.NUM_MULTIPLIERS) each joint's multipliers so far this substep (None:
-    zero). targets: the substep's `joints.Targets` (rotor offsets, torques, references). h: s.
+    zero). targets: the substep's `joints.Targets` (rotor offsets, torques, references, drive
+    targets). h: s. saturated: (J, 3) bool, drive rows to leave out (`direct_step`), or None.
 
     A lock is rigid, alpha the joint's regularisation (`joints.lock_rows`: a hinge's axle alignment,
     without which the solve turned hinges off their axles and the sweeps turned them back). A rotor
@@ -277,11 +287,13 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
     spring and damper (`joints.limit_rows`); the rows are those past their bounds where this solve
     is taken (rigid limits are left to the sweeps, `_row_groups`). Without them the direct step closes the points by
     swinging joints whose rotors are heavy (Brax's ant: armature 40-120 x its legs' inertia) and
-    bending them through their limits, and the sweeps must fight that back each iteration.
+    bending them through their limits, and the sweeps must fight that back each iteration. A drive
+    is a spring and damper toward its target (`joints.drive_rows`): alpha = 1 / (k h^2 + nu h); one
+    at its torque limit (DBD (114)) after the sweeps, or in `saturated`, is left out.
     """
     structure = model.structure
-    lock_groups, rotor_groups, limit_groups = _row_groups(structure)
-    if not (lock_groups or rotor_groups or limit_groups):
+    lock_groups, rotor_groups, limit_groups, drive_groups = _row_groups(structure)
+    if not (lock_groups or rotor_groups or limit_groups or drive_groups):
         return None
     num_joints, dtype = structure.num_joints, bodies.inv_inertia.dtype
     lam = jnp.zeros((num_joints, joint_family.NUM_MULTIPLIERS), dtype) if multipliers is None else multipliers
@@ -334,6 +346,20 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
         on = np.any([rows for _, _, rows in limit_groups], axis=0) & limits.active
         parts.append((on, limits.directions, limits.compliance, limits.residual + limits.compliance * taken))
         upper = limits.upper
+    if drive_groups:
+        drives = joint_family.DriveRows(*measured(drive_groups, lambda j, f, t, pair, kind, traced: tuple(
+            joint_family.drive_rows(j, f, t, pair, kind, h, traced))))  # fmt: skip
+        taken = lam[:, joint_family.DRIVE : joint_family.DRIVE + 3]
+        # A drive at its torque limit (DBD (114)) keeps the torque the sweeps gave it: a linear row
+        # would push past the limit.
+        bound = model.joints.drive_max_torque * h**2
+        ball = np.asarray(flag.ball_drive)[:, None]
+        size = jnp.where(ball, math.safe_norm(taken, keepdims=True), jnp.abs(taken))
+        free = size < bound[:, None]  # an unlimited drive stores bound = inf
+        if saturated is not None:
+            free = free & ~saturated
+        on = np.any([rows for _, _, rows in drive_groups], axis=0) & drives.active & free
+        parts.append((on, drives.directions, drives.compliance, drives.residual + drives.compliance * taken))
     on, directions, compliance, residual = (jnp.concatenate(column, axis=1) for column in zip(*parts, strict=True))
     return AngularRows(
         on=on,
@@ -352,7 +378,7 @@ _EULER_UPPER = joint_family.EULER_UPPER + np.arange(3)
 def angular_increments(structure: Structure, rows: AngularRows, step: jnp.ndarray) -> jnp.ndarray:
     """(J, joints.NUM_MULTIPLIERS): the multiplier steps of the angular rows' solve `step` (J, K),
     in the joint multipliers' layout (a limit's mu to its lower row, or -mu to its upper row)."""
-    lock_groups, rotor_groups, limit_groups = _row_groups(structure)
+    lock_groups, rotor_groups, limit_groups, drive_groups = _row_groups(structure)
     increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), step.dtype)
     if lock_groups:
         lock = jnp.einsum("jkc,jk->jc", rows.lock_basis, step[:, :3])
@@ -363,11 +389,15 @@ def angular_increments(structure: Structure, rows: AngularRows, step: jnp.ndarra
         step = step[:, 3:]
     if limit_groups:
         hinge = np.asarray(joint_family.flags(structure).hinge)
-        lower, upper = jnp.where(rows.upper, 0.0, step), jnp.where(rows.upper, -step, 0.0)
+        limit = step[:, :3]
+        lower, upper = jnp.where(rows.upper, 0.0, limit), jnp.where(rows.upper, -limit, 0.0)
         increments = increments.at[:, _EULER_LOWER].set(jnp.where(hinge[:, None], 0.0, lower))
         increments = increments.at[:, _EULER_UPPER].set(jnp.where(hinge[:, None], 0.0, upper))
         increments = increments.at[:, joint_family.ANGLE_LOWER].set(jnp.where(hinge, lower[:, 0], 0.0))
         increments = increments.at[:, joint_family.ANGLE_UPPER].set(jnp.where(hinge, upper[:, 0], 0.0))
+        step = step[:, 3:]
+    if drive_groups:
+        increments = increments.at[:, joint_family.DRIVE : joint_family.DRIVE + 3].set(step[:, :3])
     return increments
 
 
@@ -552,20 +582,54 @@ def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarr
     return dx, dtheta, increments[:, joint_family.POINT : joint_family.POINT + 3]
 
 
-def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
-                multipliers: jnp.ndarray | None = None, targets: tuple | None = None,
-                ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
-    """`factor` and `solve` at the configuration of `bodies`, its joints measured once: (dx, dtheta)
-    (N + 1, 3) to add and the multiplier steps (J, joints.NUM_MULTIPLIERS) of the rows solved.
-    multipliers: (J, joints.NUM_MULTIPLIERS) so far this substep (None: zero). targets: (the
-    substep's `joints.Targets`, h) to solve the joints' rotation locks, rotors and angle limits with
-    their points (`angular_rows`), or None for the points alone."""
+def _solve_once(model: Model, bodies: BodySet, held, multipliers, targets, saturated=None):
+    """One `factor` and `solve` at the configuration of `bodies`: (dx, dtheta, increments, the
+    angular rows solved or None)."""
     points = point_gaps(model, bodies)
-    angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets)
+    angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets, saturated)
     point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
     factors = factor(model, bodies, held, points, angular)
     dx, dtheta, kappa = solve(model, factors, bodies, point_multipliers, points, angular)
     increments = jnp.zeros((model.structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
     if angular is not None:
         increments = angular_increments(model.structure, angular, kappa[:, 3:])
-    return dx, dtheta, increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3])
+    return dx, dtheta, increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3]), angular
+
+
+def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
+                multipliers: jnp.ndarray | None = None, targets: tuple | None = None,
+                ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
+    """`factor` and `solve` at the configuration of `bodies`, its joints measured once: (dx, dtheta)
+    (N + 1, 3) to add and the multiplier steps (J, joints.NUM_MULTIPLIERS) of the rows solved.
+    multipliers: (J, joints.NUM_MULTIPLIERS) so far this substep (None: zero). targets: (the
+    substep's `joints.Targets`, h) to solve the joints' rotation locks, rotors, angle limits and
+    drives with their points (`angular_rows`), or None for the points alone.
+
+    A drive with a torque limit (DBD (114)) is a linear row only while it stays inside it: where
+    the solve takes one past its limit, the limit's torque is applied as a load and the solve is
+    taken again from the same configuration without that drive (one step of an active set; a drive
+    the sweeps left at its limit is out from the start). Without it, one sweep of a torque-limited
+    arm followed by the solve held the arm up with 2.5 times the limit."""
+    structure = model.structure
+    dx, dtheta, increments, angular = _solve_once(model, bodies, held, multipliers, targets)
+    if angular is None or not _row_groups(structure)[3] or not structure.joint_drive_limited.array.any():
+        return dx, dtheta, increments
+    joint_targets, h = targets
+    lam = jnp.zeros_like(increments) if multipliers is None else multipliers
+    drive = slice(joint_family.DRIVE, joint_family.DRIVE + 3)
+    before, after = lam[:, drive], lam[:, drive] + increments[:, drive]
+    bound = model.joints.drive_max_torque[:, None] * h**2
+    ball = np.asarray(joint_family.flags(structure).ball_drive)[:, None]
+    size = jnp.where(ball, math.safe_norm(after, keepdims=True), jnp.abs(after))
+    saturated = angular.on[:, -3:] & (size > bound)
+    limited = jnp.where(saturated, after * bound / jnp.where(saturated, size, 1.0), after)  # (114)
+    load = jnp.where(saturated, limited - before, 0.0)  # each saturated row's multiplier step
+    # The load turns b by I_b^-1 d load and a by -I_a^-1 d load, d each row's direction.
+    torque = jnp.einsum("jkc,jk->jc", angular.directions[:, -3:], load)
+    ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
+    turn = jnp.einsum("jsab,jsb->jsa", bodies.inv_inertia[ends], jnp.stack([-torque, torque], axis=1))
+    applied = jnp.zeros_like(bodies.dtheta).at[ends.reshape(-1)].add(turn.reshape(-1, 3))
+    loaded = bodies._replace(dtheta=bodies.dtheta + applied)
+    again = lam.at[:, drive].add(load)
+    dx, dtheta, increments, _ = _solve_once(model, loaded, held, again, targets, saturated)
+    return dx, dtheta + applied, increments.at[:, drive].add(load)
