@@ -37,10 +37,11 @@ with 2 substeps x 8 iterations (the ragdoll module's default, 16 sweeps per phys
 ankle target of -0.036 rad (action -0.045, leaning the centre of mass 4 cm forward) sagged to
 -0.105 and -0.127 rad, the heels lifted and the doll fell on its face 2.9 s after the start with
 no push; the same lean holds at -0.051 rad with 32 sweeps (4 x 8, 2 x 16 or 8 x 4 alike) and
-at -0.043 with 64 (converged: 2 x 32 and 8 x 8 agree). With the pushes on, the home pose with
-that lean ramped in over 1 s and held stands through 41 of 48 episodes of 300 steps at 4 x 8, and 0 of 48 at
-2 x 8 (whose best constant lean, -0.01 or -0.02, stands 15 of 48). Each step costs twice as
-much (335 against 666 env steps/s at batch 64, one core).
+at -0.043 with 64 (2 x 32 and 8 x 8 agree, yet short of convergence: the drive's own sag under
+that load is 1.5 mrad, to -0.0375 rad, where `tree_solve` holds it; README, session 26). With the
+pushes on, the home pose with that lean ramped in over 1 s and held stands through 41 of 48
+episodes of 300 steps at 4 x 8, and 0 of 48 at 2 x 8 (whose best constant lean, -0.01 or -0.02,
+stands 15 of 48). Each step costs twice as much (335 against 666 env steps/s at batch 64, one core).
 
 Pushes: at each step, with probability dt / `push_interval` (one push every `push_interval`
 seconds on average), the torso's velocity changes by a horizontal kick of random direction and a

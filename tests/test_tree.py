@@ -268,16 +268,20 @@ def test_direct_solve_of_whole_joints_is_a_newton_step_the_sweeps_agree_with(flo
     targets = (families[0].params[1], h)
     multipliers = jnp.zeros((model.structure.num_joints, joints.NUM_MULTIPLIERS))
     rows = tree.angular_rows(model, table, multipliers, *targets)
-    # Rows on: locks, rotors, limits, drives (the ant's joint damping is a drive without stiffness).
-    assert np.asarray(rows.on).sum(axis=0).tolist() == [8, 8, 0, 8, 0, 0, 4, 0, 0, 8, 0, 0]
+    # Rows on: locks, then the springs along each hinge (rotors, limits, drives: the ant's joint
+    # damping is a drive without stiffness) merged into one row each (`tree.AngularRows`).
+    assert np.asarray(rows.on).sum(axis=0).tolist() == [8, 8, 0, 8, 0, 0]
+    assert np.asarray(rows.spring_on).sum(axis=1).tolist() == [[8, 0, 0], [4, 0, 0], [8, 0, 0]]
     gaps = []
     for _ in range(3):
         dx, dtheta, increments = tree.direct_step(model, table, None, multipliers, targets)
         table = table._replace(dx=table.dx + dx, dtheta=table.dtheta + dtheta)
         multipliers = multipliers + increments
         gaps.append(float(jnp.max(jnp.abs(tree.point_gaps(model, table)[0]))))
-        residual = tree.angular_rows(model, table, multipliers, *targets).residual
-        assert float(jnp.max(jnp.abs(jnp.where(rows.on, residual, 0.0)))) < 1e-8
+        after = tree.angular_rows(model, table, multipliers, *targets)
+        assert float(jnp.max(jnp.abs(jnp.where(rows.on, after.residual, 0.0)))) < 1e-8
+        # each spring of a merged row on its own too (the split is exact)
+        assert float(jnp.max(jnp.abs(jnp.where(rows.spring_on, after.spring_residual, 0.0)))) < 1e-8
     assert gaps[0] < 1e-8 and gaps[2] < 1e-14  # from 1.2 mm: 1.7e-9 m, then rounding
     start = [jnp.zeros((len(f.bodies), f.num_multipliers)) for f in families]
     start[0] = multipliers

@@ -253,10 +253,18 @@ def _row_groups(structure: Structure) -> tuple[list, list, list, list]:
 
 class AngularRows(NamedTuple):
     """The joints' angular rows the direct solve takes beside their points, (J, K, ...) each: three
-    rows of rotation lock, of rotors, of hinge or universal / gimbal soft angle limits and of drive,
-    each block where the model has any (K = 3 to 12, in that order), each row in the compliance form
-    of DBD (49) with J = (0, d) on b and (0, -d) on a. Rows a joint lacks, limits not past their
-    bounds and drives at their torque limit are off (J = 0, no error)."""
+    rows of rotation lock, then three spring rows, one per degree of freedom, each block where the
+    model has any (K = 3 or 6), each row in the compliance form of DBD (49) with J = (0, d) on b and
+    (0, -d) on a. Rows a joint lacks are off (J = 0, no error).
+
+    A degree of freedom's rotor, soft angle limit and drive are springs along the same d (the
+    dq_k / dtheta_b of its angle), so they act as one row: with W the rest of the system along d,
+    the rows W mu + alpha_s mu_s = -r_s (s = rotor, limit, drive) are the one row
+    (W + alpha) mu = -r with mu = sum mu_s, 1 / alpha = sum 1 / alpha_s and r = alpha sum r_s / alpha_s,
+    and each mu_s = (r + alpha mu - r_s) / alpha_s after (`angular_increments`). Exact, and three
+    rows fewer per block than taking them apart. The `springs` hold each one's own row to split by:
+    (S, J, 3) for the S kinds the model has (rotors, limits, drives, in that order), off where a
+    joint lacks it, a limit is not past its bound or a drive is at its torque limit."""
 
     on: jnp.ndarray  # (J, K) bool
     directions: jnp.ndarray  # (J, K, 3) d
@@ -264,6 +272,9 @@ class AngularRows(NamedTuple):
     residual: jnp.ndarray  # (J, K) c + alpha lambda now (0 where off)
     lock_basis: jnp.ndarray | None  # (J, 3, 3) a lock row's multiplier: basis_k . L (`joints.lock_rows`)
     upper: jnp.ndarray | None  # (J, 3) bool: a limit row is its upper bound's (multiplier -mu), else its lower's
+    spring_on: jnp.ndarray | None  # (S, J, 3) bool
+    spring_compliance: jnp.ndarray | None  # (S, J, 3) alpha_s (1 where off)
+    spring_residual: jnp.ndarray | None  # (S, J, 3) r_s = c_s + alpha_s lambda_s now
 
 
 def has_angular_rows(structure: Structure) -> bool:
@@ -317,6 +328,7 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
         return found
 
     parts = []  # (on, directions, compliance, residual) per block of three rows
+    springs = []  # the same, per kind of spring row, merged into one block below
     upper = basis = None
     if lock_groups:
         error, directions, basis = measured(
@@ -334,7 +346,7 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
         armature = jnp.where(np.asarray(flag.rotor_ball)[:, None], model.joints.armature[:, :1], model.joints.armature)
         compliance = jnp.where(on, 1.0 / jnp.where(on, armature, 1.0), 1.0)
         taken = lam[:, joint_family.ROTOR : joint_family.ROTOR + 3]
-        parts.append((jnp.asarray(on), directions, compliance, error + compliance * taken))
+        springs.append((jnp.asarray(on), directions, compliance, error + compliance * taken))
     if limit_groups:
         limits = measured(limit_groups, lambda j, f, t, pair, kind, traced: tuple(
             joint_family.limit_rows(j, f, pair, kind, h, traced)))  # fmt: skip
@@ -344,7 +356,7 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
         upper_taken = jnp.where(hinge, lam[:, joint_family.ANGLE_UPPER, None], lam[:, _EULER_UPPER])
         taken = jnp.where(limits.upper, -upper_taken, lower_taken)
         on = np.any([rows for _, _, rows in limit_groups], axis=0) & limits.active
-        parts.append((on, limits.directions, limits.compliance, limits.residual + limits.compliance * taken))
+        springs.append((on, limits.directions, limits.compliance, limits.residual + limits.compliance * taken))
         upper = limits.upper
     if drive_groups:
         drives = joint_family.DriveRows(*measured(drive_groups, lambda j, f, t, pair, kind, traced: tuple(
@@ -359,7 +371,21 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
         if saturated is not None:
             free = free & ~saturated
         on = np.any([rows for _, _, rows in drive_groups], axis=0) & drives.active & free
-        parts.append((on, drives.directions, drives.compliance, drives.residual + drives.compliance * taken))
+        springs.append((on, drives.directions, drives.compliance, drives.residual + drives.compliance * taken))
+    spring_on = spring_compliance = spring_residual = None
+    if springs:
+        stacked = (jnp.stack(column) for column in zip(*springs, strict=True))
+        spring_on, each_direction, spring_compliance, spring_residual = stacked
+        spring_compliance = jnp.where(spring_on, spring_compliance, 1.0)
+        spring_residual = jnp.where(spring_on, spring_residual, 0.0)
+        stiffness = jnp.sum(jnp.where(spring_on, 1.0 / spring_compliance, 0.0), axis=0)  # sum of 1 / alpha_s
+        on = jnp.any(spring_on, axis=0)
+        compliance = 1.0 / jnp.where(on, stiffness, 1.0)
+        residual = compliance * jnp.sum(jnp.where(spring_on, spring_residual / spring_compliance, 0.0), axis=0)
+        # The kinds share d where they are on (the same angle's gradient); take it from one that is.
+        directions = jnp.sum(jnp.where(spring_on[..., None] & (jnp.cumsum(spring_on, axis=0) == 1)[..., None],
+                                       each_direction, 0.0), axis=0)  # fmt: skip
+        parts.append((on, directions, compliance, residual))
     on, directions, compliance, residual = (jnp.concatenate(column, axis=1) for column in zip(*parts, strict=True))
     return AngularRows(
         on=on,
@@ -368,6 +394,9 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
         residual=jnp.where(on, residual, 0.0),
         lock_basis=basis,
         upper=upper,
+        spring_on=spring_on,
+        spring_compliance=spring_compliance,
+        spring_residual=spring_residual,
     )
 
 
@@ -377,27 +406,30 @@ _EULER_UPPER = joint_family.EULER_UPPER + np.arange(3)
 
 def angular_increments(structure: Structure, rows: AngularRows, step: jnp.ndarray) -> jnp.ndarray:
     """(J, joints.NUM_MULTIPLIERS): the multiplier steps of the angular rows' solve `step` (J, K),
-    in the joint multipliers' layout (a limit's mu to its lower row, or -mu to its upper row)."""
+    in the joint multipliers' layout: a lock's through its basis, a spring row's split among its
+    rotor, limit and drive (`AngularRows`), a limit's mu to its lower row, or -mu to its upper row."""
     lock_groups, rotor_groups, limit_groups, drive_groups = _row_groups(structure)
     increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), step.dtype)
     if lock_groups:
         lock = jnp.einsum("jkc,jk->jc", rows.lock_basis, step[:, :3])
         increments = increments.at[:, joint_family.ROTATION_LOCK : joint_family.ROTATION_LOCK + 3].set(lock)
         step = step[:, 3:]
+    if not (rotor_groups or limit_groups or drive_groups):
+        return increments
+    merged = rows.residual[:, -3:] + rows.compliance[:, -3:] * step[:, :3]  # r + alpha mu = -W mu
+    shares = iter(jnp.where(rows.spring_on, (merged - rows.spring_residual) / rows.spring_compliance, 0.0))
     if rotor_groups:
-        increments = increments.at[:, joint_family.ROTOR : joint_family.ROTOR + 3].set(step[:, :3])
-        step = step[:, 3:]
+        increments = increments.at[:, joint_family.ROTOR : joint_family.ROTOR + 3].set(next(shares))
     if limit_groups:
         hinge = np.asarray(joint_family.flags(structure).hinge)
-        limit = step[:, :3]
+        limit = next(shares)
         lower, upper = jnp.where(rows.upper, 0.0, limit), jnp.where(rows.upper, -limit, 0.0)
         increments = increments.at[:, _EULER_LOWER].set(jnp.where(hinge[:, None], 0.0, lower))
         increments = increments.at[:, _EULER_UPPER].set(jnp.where(hinge[:, None], 0.0, upper))
         increments = increments.at[:, joint_family.ANGLE_LOWER].set(jnp.where(hinge, lower[:, 0], 0.0))
         increments = increments.at[:, joint_family.ANGLE_UPPER].set(jnp.where(hinge, upper[:, 0], 0.0))
-        step = step[:, 3:]
     if drive_groups:
-        increments = increments.at[:, joint_family.DRIVE : joint_family.DRIVE + 3].set(step[:, :3])
+        increments = increments.at[:, joint_family.DRIVE : joint_family.DRIVE + 3].set(next(shares))
     return increments
 
 
@@ -621,7 +653,7 @@ def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
     bound = model.joints.drive_max_torque[:, None] * h**2
     ball = np.asarray(joint_family.flags(structure).ball_drive)[:, None]
     size = jnp.where(ball, math.safe_norm(after, keepdims=True), jnp.abs(after))
-    saturated = angular.on[:, -3:] & (size > bound)
+    saturated = angular.spring_on[-1] & (size > bound)
     limited = jnp.where(saturated, after * bound / jnp.where(saturated, size, 1.0), after)  # (114)
     load = jnp.where(saturated, limited - before, 0.0)  # each saturated row's multiplier step
     # The load turns b by I_b^-1 d load and a by -I_a^-1 d load, d each row's direction.
