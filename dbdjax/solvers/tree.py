@@ -29,13 +29,14 @@ solver's `TreeStep`), so the points hold to second order whatever the sweeps lef
 sweep one more solve takes each tree joint whole: with its point, its rotation lock (a hinge's
 axle alignment, a universal's lock, a fixed joint's), its rotors (armature), its hinge or
 universal / gimbal soft angle limits past their bounds and its drive (DBD 9) while inside its
-torque limit, each in the compliance form of DBD (49) beside the point rows (`angular_rows`; up to
-15 rows a joint instead of 3). Without them the direct steps closed the points by swinging joints
-whose rotors are heavy and bending them through their limits, which the sweeps then fought (Brax's
-ant sank to 0.18 m), and undid what the sweeps' drives had held (a driven arm sagged 0.61 rad).
-Those rows stay out of the solves inside the sweeps: there the sweeps' soft limits let go of what a
-solve had pushed past a bound and the ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they
-made the standing ragdoll, its knees on their limits, creep up and fall within 10 s.
+torque limit, each in the compliance form of DBD (49) beside the point rows (`angular_rows`; a
+degree of freedom's rotor, limit and drive as one row: up to 9 rows a joint instead of 3). Without
+them the direct steps closed the points by swinging joints whose rotors are heavy and bending them
+through their limits, which the sweeps then fought (Brax's ant sank to 0.18 m), and undid what the
+sweeps' drives had held (a driven arm sagged 0.61 rad). Those rows stay out of the solves inside
+the sweeps: there the sweeps' soft limits let go of what a solve had pushed past a bound and the
+ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they made the standing
+ragdoll, its knees on their limits, creep up and fall within 10 s.
 Contacts are not rows of any of them; the bodies that touch something are held along their
 normals (`contact_hold`), or a standing doll's direct steps pull its feet toward the body and it collapses.
 
@@ -262,7 +263,7 @@ class AngularRows(NamedTuple):
     the rows W mu + alpha_s mu_s = -r_s (s = rotor, limit, drive) are the one row
     (W + alpha) mu = -r with mu = sum mu_s, 1 / alpha = sum 1 / alpha_s and r = alpha sum r_s / alpha_s,
     and each mu_s = (r + alpha mu - r_s) / alpha_s after (`angular_increments`). Exact, and three
-    rows fewer per block than taking them apart. The `springs` hold each one's own row to split by:
+    rows fewer per block than taking them apart. The `spring_*` fields hold each one's own row to split by:
     (S, J, 3) for the S kinds the model has (rotors, limits, drives, in that order), off where a
     joint lacks it, a limit is not past its bound or a drive is at its torque limit."""
 
@@ -458,6 +459,11 @@ def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray:
     and no loop to the tree. It has no error of its own: it shapes the direct step (a foot on the
     floor stays put and the body above moves to close the joints) and the sweeps' contact rows
     keep the last word on the contacts. contacts: the substep's `collision.ContactSlots`.
+
+    Known limit: the hold carries load the contacts would, with no multiplier, no unilateral and no
+    friction bound (the standing ragdoll at 4 x 4: its feet's normal multipliers add up to 29 N of
+    its 687 N weight), so a heel it lets rise is not pulled back and the feet are otherwise glued
+    (README, session 26). Contacts as rows of the solve would remove it.
     """
     world = model.structure.num_bodies
     dtype = bodies.inv_inertia.dtype
@@ -646,7 +652,7 @@ def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
     dx, dtheta, increments, angular = _solve_once(model, bodies, held, multipliers, targets)
     if angular is None or not _row_groups(structure)[3] or not structure.joint_drive_limited.array.any():
         return dx, dtheta, increments
-    joint_targets, h = targets
+    _, h = targets
     lam = jnp.zeros_like(increments) if multipliers is None else multipliers
     drive = slice(joint_family.DRIVE, joint_family.DRIVE + 3)
     before, after = lam[:, drive], lam[:, drive] + increments[:, drive]
