@@ -401,6 +401,31 @@ def test_tree_solve_keeps_a_drive_within_its_torque_limit(float64):
     assert abs(ends["tree"][0] - ends["sweeps"][0]) < 1e-5
 
 
+def test_gradients_through_a_saturated_drive_beside_an_unlimited_one_match_finite_differences(float64):
+    # A two-link arm: the root's drive at its torque limit (3 N m against the links' 19.6 N m), the
+    # elbow's unlimited (its bound inf). The active-set step reads the bound only where a drive is
+    # saturated: read everywhere, the elbow's inf gave NaN gradients (found in review).
+    b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
+    upper = b.add_body(pos=(0.25, 0, 1), mass=2.0, inertia=(0.001, 0.04, 0.04))
+    lower = b.add_body(pos=(0.75, 0, 1), mass=2.0, inertia=(0.001, 0.04, 0.04))
+    shoulder = b.add_hinge_joint(dbd.WORLD, upper, anchor=(0, 0, 1), axis=(0, 1, 0))
+    elbow = b.add_hinge_joint(upper, lower, anchor=(0.5, 0, 1), axis=(0, 1, 0))
+    b.add_drive(shoulder, stiffness=2000.0, damping=20.0, max_torque=3.0)
+    b.add_drive(elbow, stiffness=500.0, damping=5.0)
+    model = b.finalize(dt=1 / 60, iterations=1, tree_solve=True)
+
+    def height(targets):
+        final, _ = dbd.rollout(model, dbd.init(model), jnp.broadcast_to(targets, (20, model.num_controls)))
+        return final.pos[1, 2]
+
+    targets = jnp.array([0.1, -0.2])
+    gradient = np.asarray(jax.grad(height)(targets))
+    step = 1e-6
+    central = np.array([(height(targets + step * e) - height(targets - step * e)) / (2 * step) for e in np.eye(2)])
+    assert np.all(np.isfinite(gradient))
+    np.testing.assert_allclose(gradient, central, rtol=1e-5, atol=1e-8)
+
+
 def test_gradients_through_tree_solve_match_finite_differences(float64):
     # Brax's ant in the air with tree_solve (its whole joints in the last direct solve: locks, rotors,
     # the ankles' active soft limits): d(torso height after 5 steps) / d(controls), against central

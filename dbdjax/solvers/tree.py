@@ -377,6 +377,9 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
     if springs:
         stacked = (jnp.stack(column) for column in zip(*springs, strict=True))
         spring_on, each_direction, spring_compliance, spring_residual = stacked
+        # A spring row without compliance (a limit row whose joint cannot turn along it, `joints.limit_rows`
+        # with w = 0) moves nothing: off, rather than an infinite stiffness in the sum.
+        spring_on = spring_on & (spring_compliance > 0.0)
         spring_compliance = jnp.where(spring_on, spring_compliance, 1.0)
         spring_residual = jnp.where(spring_on, spring_residual, 0.0)
         stiffness = jnp.sum(jnp.where(spring_on, 1.0 / spring_compliance, 0.0), axis=0)  # sum of 1 / alpha_s
@@ -660,7 +663,10 @@ def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
     ball = np.asarray(joint_family.flags(structure).ball_drive)[:, None]
     size = jnp.where(ball, math.safe_norm(after, keepdims=True), jnp.abs(after))
     saturated = angular.spring_on[-1] & (size > bound)
-    limited = jnp.where(saturated, after * bound / jnp.where(saturated, size, 1.0), after)  # (114)
+    # (114); bound and size read only where saturated (an unlimited drive's inf bound would make
+    # the branch that is not taken inf, and its zero cotangent NaN in reverse mode).
+    scale = jnp.where(saturated, bound, 0.0) / jnp.where(saturated, size, 1.0)
+    limited = jnp.where(saturated, after * scale, after)
     load = jnp.where(saturated, limited - before, 0.0)  # each saturated row's multiplier step
     # The load turns b by I_b^-1 d load and a by -I_a^-1 d load, d each row's direction.
     torque = jnp.einsum("jkc,jk->jc", angular.directions[:, -3:], load)
