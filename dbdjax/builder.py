@@ -1109,14 +1109,14 @@ class ModelBuilder:
           bodies (block Gauss-Seidel: the joint tree's points as one block, solved directly). The
           joint points then hold to second order at every step and the other rows carry what the
           sweeps leave: a 20-link chain at dt = 1/30 and 10 iterations keeps its joints to
-          0.0001 mm (170 mm without). Contacts are not rows of the direct solve: the bodies that
-          touch something are held there along their normals (`tree.contact_hold`), so the body
-          above moves to close the joints (the standing ragdoll stays within 0.8 mm of its pose;
-          without the hold it collapsed). After the last sweep one more direct solve takes each
+          0.0001 mm (170 mm without). A tree body's contacts with the world are rows of every
+          direct solve, unilateral and within the friction cone by one active-set step
+          (solvers/tree_contacts.py): they carry the load (a standing ragdoll's 687 N on its feet)
+          and a leaning ragdoll stands at 1 substep x 1 iteration. After the last sweep one more direct solve takes each
           tree joint whole: point, rotation lock, rotors (armature), the soft angle limits past their
           bounds and its drive within its torque limit, so a joint with a heavy rotor, pressed on a
           limit or driven is solved with its point (Brax's dropped ant lands at 1 iteration as at 32
-          sweeps alone; a driven arm settles at its static sag to 1e-6 rad). DBD solver only; off by
+          sweeps alone; a driven arm settles at its static sag within 1.1e-6 rad). DBD solver only; off by
           default.
         """
         dt = _scalar(dt, "finalize: dt")

@@ -124,12 +124,14 @@ class RagdollEnv(DbdFuncEnv):
         frame_skip: int = 2,
         max_episode_steps: int | None = None,
         config: dict[str, Any] | None = None,
+        tree_solve: bool = False,
     ):
         base = dict(
             height=height, mass=mass, drive_stiffness=_hashable(drive_stiffness),
             drive_damping=_hashable(drive_damping), max_torque=_hashable(max_torque), push_interval=push_interval,
             push_speed=tuple(push_speed), fall_height=fall_height, smooth_weight=smooth_weight, dt=dt,
             substeps=substeps, iterations=iterations, frame_skip=frame_skip, max_episode_steps=max_episode_steps,
+            tree_solve=tree_solve,
         )  # fmt: skip
         if push_interval is not None and not push_interval > 0.0:
             raise ValueError(f"{type(self).__name__}: push_interval must be positive or None, got {push_interval!r}")
@@ -140,7 +142,7 @@ class RagdollEnv(DbdFuncEnv):
             height=height, mass=mass, drive_stiffness=drive_stiffness, drive_damping=drive_damping,
             max_torque=max_torque,
         )  # fmt: skip
-        model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations)
+        model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations, tree_solve=tree_solve)
         if model.num_controls != doll.num_controls:
             raise ValueError("RagdollEnv: the doll must be the only thing with controls in its model")
         self.doll = doll

@@ -223,10 +223,10 @@ def test_tree_solve_is_refused_by_the_impulse_solver():
 
 
 def test_tree_solve_keeps_the_standing_ragdoll_on_its_feet():
-    # Contacts are not rows of the direct solve; without `contact_hold` each direct step pulled the
-    # light feet back toward the body and the doll (2 x 8, zero control) collapsed: a body 458 mm
-    # from its build pose after 2 s (sweeps alone: 6.4 mm). Held along their contact normals, the
-    # feet stay and the body above moves to close the joints: measured 0.79 mm, joints closed. Over
+    # Without the feet's contacts in the direct solve each direct step pulled the light feet back
+    # toward the body and the doll (2 x 8, zero control) collapsed: a body 458 mm from its build
+    # pose after 2 s (sweeps alone: 6.4 mm). With them (session 24: a hold along their normals;
+    # now rows, tests/test_tree_contacts.py) the feet stay and the body above moves to close the joints. Over
     # 10 s: with its rigid knee limits in the whole-joint solve it crept up and fell
     # (1.7 m at 10 s); they stay with the sweeps (`tree._row_groups`): 0.88 mm (sweeps alone: 11.6 mm at 4 s).
     builder, doll = ragdoll.build()
@@ -274,7 +274,7 @@ def test_direct_solve_of_whole_joints_is_a_newton_step_the_sweeps_agree_with(flo
     assert np.asarray(rows.spring_on).sum(axis=1).tolist() == [[8, 0, 0], [4, 0, 0], [8, 0, 0]]
     gaps = []
     for _ in range(3):
-        dx, dtheta, increments = tree.direct_step(model, table, None, multipliers, targets)
+        dx, dtheta, increments, _ = tree.direct_step(model, table, None, multipliers, targets)
         table = table._replace(dx=table.dx + dx, dtheta=table.dtheta + dtheta)
         multipliers = multipliers + increments
         gaps.append(float(jnp.max(jnp.abs(tree.point_gaps(model, table)[0]))))
@@ -314,7 +314,8 @@ def test_tree_solve_steps_a_pendulum_with_heavy_rotors_as_converged_sweeps_do(fl
 def test_tree_solve_lands_the_ant_as_many_sweeps_do():
     # Brax's ant dropped with zero control (armature 40-120 x its legs' inertia, soft limits): with
     # 4 sweeps alone it sags to 0.27 m at landing and gains 0.66 J; with tree_solve at 1 and 4
-    # sweeps it lands as 32 sweeps do (-3.84 J against -3.9 J, torso 0.362 m against 0.354 m at 1 s).
+    # sweeps it lands as 32 sweeps do (-3.78 J against -3.90 J, torso 0.369 m against 0.354 m at 1 s;
+    # session 26, with the contact hold: -3.84 J, 0.362 m).
     results = {}
     for name, finalize in {"sweeps 32": {"iterations": 32}, "tree 1": {"iterations": 1, "tree_solve": True},
                            "tree 4": {"iterations": 4, "tree_solve": True}}.items():  # fmt: skip
@@ -378,7 +379,7 @@ def test_tree_solve_holds_a_driven_arm_at_its_static_sag(float64):
     # The whole-joint solve takes the drives (DBD 9) as spring rows beside the points: a horizontal
     # arm of three links on a hinge, a ball and a universal joint settles where each drive's torque
     # k theta carries the links beyond it (0.022, 0.0098, 0.0025 rad). One sweep and the solve land
-    # within 2e-6 rad of it (measured); 4 sweeps alone sag 0.27 rad too far at the root; the
+    # within 1.1e-6 rad of it (measured); 4 sweeps alone sag 0.27 rad too far at the root; the
     # solve without the drives (before) let the root sag 0.61 rad.
     expected = _static_sag(3)
     solved, speed = _settled_sag(driven_arm(("hinge", "ball", "universal"), iterations=1, tree_solve=True))

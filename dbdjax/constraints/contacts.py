@@ -53,6 +53,12 @@ def sweeps(points: int) -> int:
     return FEW_POINT_SWEEPS.get(points, SWEEPS)
 
 
+def row_directions(normal: jnp.ndarray) -> jnp.ndarray:
+    """(..., 3, 3) the directions of a point's rows (n, t1, t2) from its unit normal (..., 3)."""
+    tangent = math.any_perpendicular(normal)
+    return jnp.stack([normal, tangent, math.cross(normal, tangent)], axis=-2)
+
+
 def _manifold(pair: BodyPair, normal: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jnp.ndarray):
     """The P points' rows along (n, t1, t2) and their coupling, linearised at the current pose.
 
@@ -60,8 +66,7 @@ def _manifold(pair: BodyPair, normal: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jn
     rotation of a and b per unit multiplier, coupling K (3P, 3P) = J M~^-1 J^T, DBD (86)-(87) for
     every pair of rows). A unit multiplier on row (i, k) pushes b along d_ik and a against it.
     """
-    tangent = math.any_perpendicular(normal)
-    directions = jnp.stack([normal, tangent, math.cross(normal, tangent)], axis=1)
+    directions = row_directions(normal)
     torque_a = math.cross(arm_a[:, None, :], directions)
     torque_b = math.cross(arm_b[:, None, :], directions)
     turn_a = jnp.einsum("ij,pkj->pki", pair.inv_inertia_a, torque_a)

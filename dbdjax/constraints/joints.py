@@ -426,11 +426,12 @@ def limit_rows(joint: Joints, flag: JointFlags, pair: BodyPair, kind: str, h: fl
     # K = k' / w with k' the sweeps' spring per unit effective mass (`rows.soft_limit_scale`).
     per_mass = row.soft_limit_scale(joint.armature, held) / jnp.where(held > 0.0, held, 1.0)
     stiffness, damping = joint.limit_stiffness * h**2 * per_mass, joint.limit_damping * h * per_mass
-    drift = math.dot(directions, h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a))
-    spring = jnp.where(stiffness + damping > 0.0, stiffness + damping, 1.0)
+    residual, compliance, _ = row.spring_compliance(
+        stiffness, damping, error, math.matvec(directions, row.relative_turn(pair, h))
+    )
     soft = flag.soft_limits & (held > 0.0)
-    residual = jnp.where(soft, (stiffness * error + damping * drift) / spring, error)
-    compliance = jnp.where(soft, 1.0 / spring, joint.regularization)
+    residual = jnp.where(soft, residual, error)
+    compliance = jnp.where(soft, compliance, joint.regularization)
     return LimitRows(directions, residual, compliance, upper_row, active)
 
 
@@ -477,12 +478,8 @@ def drive_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair,
         directions = jnp.eye(3, dtype=dtype)
         stiffness = jnp.broadcast_to(joint.drive_stiffness, (3,))
         damping = jnp.broadcast_to(joint.drive_damping, (3,))
-    spring_h2, damper_h = stiffness * h**2, damping * h
-    drift = math.matvec(directions, h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a))
-    total = spring_h2 + damper_h
-    active = total > 0.0
-    safe = jnp.where(active, total, 1.0)
-    return DriveRows(directions, (spring_h2 * errors + damper_h * drift) / safe, 1.0 / safe, active)
+    drift = math.matvec(directions, row.relative_turn(pair, h))
+    return DriveRows(directions, *row.spring_compliance(stiffness * h**2, damping * h, errors, drift))
 
 
 def slider_travel(joint: Joints, flag: JointFlags, pair: BodyPair):

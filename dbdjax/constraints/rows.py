@@ -196,6 +196,23 @@ def motor(relaxation, active, speed_h, bound) -> Rule:
     return Rule(relaxation, 0.0, active, speed=True, speed_h=speed_h, bound=bound)
 
 
+def spring_compliance(stiffness_h2, damping_h, error, drift):
+    """An implicit spring and damper row (DBD 8.1, 9) in the compliance form of DBD (49), as a
+    direct solve takes it: (J M~^-1 J^T + alpha) d lambda = -(r + alpha lambda) with
+    alpha = 1 / (k h^2 + nu h) and r = (k h^2 c + nu h drift) alpha, the same step as the `spring`
+    rule's. Returns (r, alpha, on), on where k h^2 + nu h > 0 (elsewhere r = c, alpha = 1)."""
+    total = stiffness_h2 + damping_h
+    on = total > 0.0
+    alpha = 1.0 / jnp.where(on, total, 1.0)
+    return jnp.where(on, (stiffness_h2 * error + damping_h * drift) * alpha, error), alpha, on
+
+
+def relative_turn(pair: BodyPair, h: float) -> jnp.ndarray:
+    """(3,) h (w_b - w_a) + (dtheta_b - dtheta_a): the turn of b against a that an angular row's
+    drift J (h V* + dX) reads (J = (0, d) on b, (0, -d) on a: drift = d . this)."""
+    return h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a)
+
+
 def soft_limit_scale(armature, inverse_mass):
     """m w = 1 + armature w: the soft limit's effective mass m = 1 / w + armature (the rotor's
     inertia on the row's coordinate included, as MuJoCo's joint-space mass) in units of 1 / w, the
@@ -375,7 +392,7 @@ def angular_row(
             error = jnp.where(held_step, error + math.dot(point_impulse, hold.gap), error)  # the held slope
     drift = 0.0
     if rule.spring or rule.speed or rule.soft:
-        drift = math.dot(direction, h * (pair.ang_vel_a - pair.ang_vel_b) + (pair.dtheta_a - pair.dtheta_b))
+        drift = -math.dot(direction, relative_turn(pair, h))  # direction is dc/dtheta_a = -d
     step = multiplier_step(rule, error, drift, inverse_mass, multiplier)
     moved = pair._replace(
         dtheta_a=pair.dtheta_a + step * turn_a,
@@ -417,7 +434,7 @@ def angular_spring(
         opens = math.skew(hold.arm_a) @ pair.inv_inertia_a + math.skew(hold.arm_b) @ pair.inv_inertia_b
         inverse_inertia = inverse_inertia - opens.T @ hold.solve @ opens
         error = error - math.matvec(opens.T, math.matvec(hold.solve, hold.gap))
-    drift = h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a)
+    drift = relative_turn(pair, h)
     residual = multiplier + stiffness_h2 * error + damping_h * drift
     system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
     candidate = multiplier - relaxation * math.matvec(math.inverse3(system), residual)

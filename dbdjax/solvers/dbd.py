@@ -37,7 +37,7 @@ from dbdjax.colouring import write_back_slots
 from dbdjax.constraints import Family, joints
 from dbdjax.constraints.rows import BodySet
 from dbdjax.model import Colour, Model, State, with_world_row
-from dbdjax.solvers import tree
+from dbdjax.solvers import tree, tree_contacts
 
 
 def body_table(model: Model, state: State, h: float) -> BodySet:
@@ -139,11 +139,12 @@ class _Run:
 
 class TreeStep(NamedTuple):
     """The direct solve that ends each iteration with `tree_solve` (solvers/tree.py): a function
-    (dx, dtheta, the joints' multipliers (J, joints.NUM_MULTIPLIERS)) -> (dx step, dtheta step,
-    multiplier steps (J, joints.NUM_MULTIPLIERS)), and the family whose nodes are the joints."""
+    (dx, dtheta, [multipliers (M_f, m_f) of each family in `families`]) -> (dx step, dtheta step,
+    [their multiplier steps]), and the families it solves: the joints first, then the contact
+    groups."""
 
     solve: Callable
-    family: int
+    families: tuple[int, ...]
 
 
 def gauss_seidel(
@@ -190,10 +191,11 @@ def gauss_seidel(
                 (dx, dtheta), new = jax.lax.scan(functools.partial(colour, run=run), (dx, dtheta), xs)
             updated.append(new)
         if tree_step is not None:
-            f = tree_step.family
-            step_dx, step_dtheta, increments = tree_step.solve(dx, dtheta, node_order(updated, f, multipliers[f]))
+            now = [node_order(updated, f, multipliers[f]) for f in tree_step.families]
+            step_dx, step_dtheta, increments = tree_step.solve(dx, dtheta, now)
             dx, dtheta = dx + step_dx, dtheta + step_dtheta
-            updated = [[lam + increments[index] if g == f else lam
+            steps = dict(zip(tree_step.families, increments, strict=True))
+            updated = [[lam + steps[g][index] if g in steps else lam
                         for g, index, lam in zip(run.fs, run.index, run_lams, strict=True)]
                        for run, run_lams in zip(runs, updated, strict=True)]  # fmt: skip
         return (dx, dtheta, updated), None
@@ -230,11 +232,12 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
         dx = dx + jax.ops.segment_sum(dx_rows, touched, n + 1) * share
         dtheta = dtheta + jax.ops.segment_sum(dtheta_rows, touched, n + 1) * share
         lams = [m[2] for m in moved]
-        if tree_step is not None and tree_step.family in used:
-            k = used.index(tree_step.family)
-            step_dx, step_dtheta, increments = tree_step.solve(dx, dtheta, lams[k])
+        if tree_step is not None and tree_step.families[0] in used:
+            k = [used.index(f) for f in tree_step.families]
+            step_dx, step_dtheta, increments = tree_step.solve(dx, dtheta, [lams[i] for i in k])
             dx, dtheta = dx + step_dx, dtheta + step_dtheta
-            lams[k] = lams[k] + increments
+            for i, increment in zip(k, increments, strict=True):
+                lams[i] = lams[i] + increment
         return (dx, dtheta, lams), None
 
     start = [multipliers[f] for f in used]
@@ -274,15 +277,21 @@ def solve(
         if options.tree_solve and tree.forest(structure)[0].size:
             # Each sweep ends with the exact solve of the tree's joint points, linearised where the
             # sweep left the bodies (refactored each time: a Newton step; factored once at X*, the
-            # chord steps gained energy on a 20-link chain at dt = 1/30), with the bodies that touch
-            # something held along their contact normals (without, a standing doll collapsed).
-            held = tree.contact_hold(model, table, contacts) if contacts else None
+            # chord steps gained energy on a 20-link chain at dt = 1/30), with the contacts with
+            # the world as rows (solvers/tree_contacts.py; without them a standing doll collapsed).
+            first_contact = len(all_families) - len(contacts)
+            solved = (0,) + tuple(range(first_contact, len(all_families)))
+            compliance_h2 = options.contact_compliance / h**2
 
-            def direct(dx, dtheta, joint_multipliers, targets=None):
+            def direct(dx, dtheta, lams, targets=None):
                 bodies = table._replace(dx=dx, dtheta=dtheta)
-                return tree.direct_step(model, bodies, held, joint_multipliers, targets)
+                touching = tree_contacts.Touching(tuple(contacts), tuple(lams[1:]), compliance_h2) if contacts else None
+                step_dx, step_dtheta, joint_steps, contact_steps = tree.direct_step(
+                    model, bodies, touching, lams[0], targets
+                )
+                return step_dx, step_dtheta, [joint_steps, *contact_steps]
 
-            tree_step = TreeStep(jax.checkpoint(direct), 0)
+            tree_step = TreeStep(jax.checkpoint(direct), solved)
             if tree.has_angular_rows(structure):
                 angular = (all_families[0].params[1], h)
         if options.jacobi:
@@ -296,10 +305,11 @@ def solve(
             # sweeps the soft limits let go of what the solve had pushed past a bound and Brax's ant
             # blew up within 4 steps; with the points alone at the end of each sweep, a heavy rotor
             # or a limit was left to the sweeps (the ant sank to 0.18 m).
-            whole = jax.checkpoint(lambda dx, dtheta, lam: direct(dx, dtheta, lam, angular))
-            step_dx, step_dtheta, increments = whole(dx, dtheta, multipliers[0])
+            whole = jax.checkpoint(lambda dx, dtheta, lams: direct(dx, dtheta, lams, angular))
+            step_dx, step_dtheta, increments = whole(dx, dtheta, [multipliers[f] for f in solved])
             dx, dtheta = dx + step_dx, dtheta + step_dtheta
-            multipliers[0] = multipliers[0] + increments
+            for f, increment in zip(solved, increments, strict=True):
+                multipliers[f] = multipliers[f] + increment
     else:
         dx = dtheta = jnp.zeros((n + 1, 3), dtype)
     contact_lams = multipliers[len(all_families) - len(contacts) :]

@@ -37,8 +37,10 @@ sweeps' drives had held (a driven arm sagged 0.61 rad). Those rows stay out of t
 the sweeps: there the sweeps' soft limits let go of what a solve had pushed past a bound and the
 ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they made the standing
 ragdoll, its knees on their limits, creep up and fall within 10 s.
-Contacts are not rows of any of them; the bodies that touch something are held along their
-normals (`contact_hold`), or a standing doll's direct steps pull its feet toward the body and it collapses.
+The contacts of a tree body with the world are rows of every direct solve (solvers/tree_contacts.py:
+each adds to its one body's block, as a joint to the fixed world would), unilateral and within the
+friction cone by one active-set step with the drives' torque limits (`direct_step`); without them a
+standing doll's direct steps pulled its feet toward the body and it collapsed.
 
 How. Bodies and joints form a forest (a joint closing a loop is left out). The saddle-point system
 [[M~, J^T], [J, -alpha]] [dX; -kappa] = [0; -c] is eliminated from the leaves to the roots and
@@ -66,8 +68,10 @@ import numpy as np
 
 from dbdjax import math
 from dbdjax.constraints import joints as joint_family
+from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
-from dbdjax.model import BALL, FIXED, GIMBAL, HINGE, UNIVERSAL, Model, Structure, with_world_row
+from dbdjax.model import BALL, FIXED, GIMBAL, HINGE, UNIVERSAL, Model, Structure
+from dbdjax.solvers import tree_contacts as touch
 
 # Joint kinds whose point constraint is a full 3-D one (a slider's acts only across its axis).
 POINT_KINDS = (BALL, HINGE, FIXED, UNIVERSAL, GIMBAL)
@@ -213,7 +217,16 @@ def point_gaps(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray,
     return jax.vmap(one)(model.joints, joint_family.flags(structure), pairs)
 
 
-def _row_groups(structure: Structure) -> tuple[list, list, list, list]:
+class RowGroups(NamedTuple):
+    """`_row_groups`: per kind of angular row, its groups."""
+
+    locks: list
+    rotors: list
+    limits: list
+    drives: list
+
+
+def _row_groups(structure: Structure) -> RowGroups:
     """The joints whose angular rows the direct solve takes, by kind: (lock groups, rotor groups,
     limit groups, drive groups), each group (kind, the universal / gimbal kind to trace, (J, 3) bool: the rows of
     each joint it covers), only kinds that occur. Host side, numpy."""
@@ -249,7 +262,7 @@ def _row_groups(structure: Structure) -> tuple[list, list, list, list]:
         ("euler_drive", frozenset({"gimbal"}), drive & ~universal),
         ("ball_drive", frozenset(), np.repeat(np.asarray(flag.ball_drive)[:, None], 3, axis=1)),
     ]
-    return tuple([g for g in groups if g[2].any()] for groups in (locks, rotors, limits, drives))
+    return RowGroups(*([g for g in groups if g[2].any()] for groups in (locks, rotors, limits, drives)))
 
 
 class AngularRows(NamedTuple):
@@ -345,9 +358,9 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
         )
         on = np.any([rows for _, _, rows in rotor_groups], axis=0)
         armature = jnp.where(np.asarray(flag.rotor_ball)[:, None], model.joints.armature[:, :1], model.joints.armature)
-        compliance = jnp.where(on, 1.0 / jnp.where(on, armature, 1.0), 1.0)
+        residual, compliance, _ = row.spring_compliance(armature, 0.0, error, 0.0)  # k h^2 = armature
         taken = lam[:, joint_family.ROTOR : joint_family.ROTOR + 3]
-        springs.append((jnp.asarray(on), directions, compliance, error + compliance * taken))
+        springs.append((jnp.asarray(on), directions, compliance, residual + compliance * taken))
     if limit_groups:
         limits = measured(limit_groups, lambda j, f, t, pair, kind, traced: tuple(
             joint_family.limit_rows(j, f, pair, kind, h, traced)))  # fmt: skip
@@ -362,13 +375,11 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
     if drive_groups:
         drives = joint_family.DriveRows(*measured(drive_groups, lambda j, f, t, pair, kind, traced: tuple(
             joint_family.drive_rows(j, f, t, pair, kind, h, traced))))  # fmt: skip
-        taken = lam[:, joint_family.DRIVE : joint_family.DRIVE + 3]
+        taken = lam[:, _DRIVE]
         # A drive at its torque limit (DBD (114)) keeps the torque the sweeps gave it: a linear row
         # would push past the limit.
-        bound = model.joints.drive_max_torque * h**2
-        ball = np.asarray(flag.ball_drive)[:, None]
-        size = jnp.where(ball, math.safe_norm(taken, keepdims=True), jnp.abs(taken))
-        free = size < bound[:, None]  # an unlimited drive stores bound = inf
+        size, bound = _drive_torque(model, taken, h)
+        free = size < bound  # an unlimited drive stores bound = inf
         if saturated is not None:
             free = free & ~saturated
         on = np.any([rows for _, _, rows in drive_groups], axis=0) & drives.active & free
@@ -406,6 +417,16 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
 
 _EULER_LOWER = joint_family.EULER_LOWER + np.arange(3)
 _EULER_UPPER = joint_family.EULER_UPPER + np.arange(3)
+_DRIVE = slice(joint_family.DRIVE, joint_family.DRIVE + 3)
+
+
+def _drive_torque(model: Model, multipliers: jnp.ndarray, h: float) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(size, bound), each (J, 3) or (J, 1): how far each drive row's multiplier (J, 3) reaches
+    against its torque limit times h^2 (DBD (114)): a ball drive's as one vector, a hinge's or a
+    universal / gimbal's per hinge, as `joints.project` clamps them."""
+    ball = np.asarray(joint_family.flags(model.structure).ball_drive)[:, None]
+    size = jnp.where(ball, math.safe_norm(multipliers, keepdims=True), jnp.abs(multipliers))
+    return size, model.joints.drive_max_torque[:, None] * h**2
 
 
 def angular_increments(structure: Structure, rows: AngularRows, step: jnp.ndarray) -> jnp.ndarray:
@@ -433,7 +454,7 @@ def angular_increments(structure: Structure, rows: AngularRows, step: jnp.ndarra
         increments = increments.at[:, joint_family.ANGLE_LOWER].set(jnp.where(hinge, lower[:, 0], 0.0))
         increments = increments.at[:, joint_family.ANGLE_UPPER].set(jnp.where(hinge, upper[:, 0], 0.0))
     if drive_groups:
-        increments = increments.at[:, joint_family.DRIVE : joint_family.DRIVE + 3].set(next(shares))
+        increments = increments.at[:, _DRIVE].set(next(shares))
     return increments
 
 
@@ -449,49 +470,18 @@ class Factors(NamedTuple):
     inverses: jnp.ndarray  # (L, W, max(6, R), 6 + R) [D_b^-1 | S_j^-1], each in its top rows
 
 
-# How stiffly `contact_hold` holds a touching body, per contact slot: k = HOLD x its mass. Measured
-# on the standing ragdoll with tree_solve (session 24): 10 (held in all three directions) let it
-# fall, 1000 along the normals kept every body within 0.8 mm of its build pose over 4 s.
-HOLD = 1000.0
-
-
-def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray:
-    """(N + 1, 6, 6) stiffness that holds every body with active contact slots along their normals
-    in the direct solve: k J^T J per slot, J = n^T [1, -[r]x] the point's normal row, k = HOLD x
-    the body's mass. A row to the fixed world touches one body, so it adds to that body's block
-    and no loop to the tree. It has no error of its own: it shapes the direct step (a foot on the
-    floor stays put and the body above moves to close the joints) and the sweeps' contact rows
-    keep the last word on the contacts. contacts: the substep's `collision.ContactSlots`.
-
-    Known limit: the hold carries load the contacts would, with no multiplier, no unilateral and no
-    friction bound (the standing ragdoll at 4 x 4: its feet's normal multipliers add up to 29 N of
-    its 687 N weight), so a heel it lets rise is not pulled back and the feet are otherwise glued
-    (README, session 26). Contacts as rows of the solve would remove it.
-    """
-    world = model.structure.num_bodies
-    dtype = bodies.inv_inertia.dtype
-    held = jnp.zeros((world + 1, 6, 6), dtype)
-    mass = with_world_row(model.bodies.mass)  # the world: 0, held by nothing
-    for group, slots in zip(model.structure.contact_groups, contacts, strict=True):
-        for side, local in enumerate((slots.local_a, slots.local_b)):
-            body = group.bodies.array[:, side]  # (C,)
-            arm = math.quat_rotate(bodies.quat[body][:, None, :], local)  # (C, P, 3) from the centre
-            row = jnp.concatenate([slots.normal, math.cross(arm, slots.normal)], axis=-1)  # n . (dx + dtheta x r)
-            k = HOLD * mass[body][:, None] * slots.active.astype(dtype)  # (C, P)
-            held = held.at[body].add(jnp.sum(k[..., None, None] * row[..., :, None] * row[..., None, :], axis=1))
-    return held
-
-
 def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None,
-           angular: AngularRows | None = None) -> Factors:  # fmt: skip
+           angular: AngularRows | None = None, contact: touch.ContactRows | None = None) -> Factors:  # fmt: skip
     """Eliminate the tree's linearised point constraints (and angular rows) at the configuration of
     `bodies`.
 
     bodies: the solver's per-body table (N + 1, ...), the world as the last row: inv_mass (N + 1,)
     1/kg, inv_inertia (N + 1, 3, 3) M~^-1, and dx, dtheta where the Jacobians are taken.
-    held: (N + 1, 6, 6) added to the bodies' blocks (`contact_hold`), or None. points:
+    held: (N + 1, 6, 6) added to the bodies' blocks (`tree_contacts.contact_hold`), or None. points:
     `point_gaps(model, bodies)` where the caller has it already. angular: `angular_rows` at the
     same configuration, eliminated with the joints' points (R = 3 + K rows a joint), or None (R = 3).
+    contact: `tree_contacts.contact_rows` at the same configuration (rows to the world: each adds
+    to its body's block), or None.
     """
     inv_mass, inv_inertia = bodies.inv_mass, bodies.inv_inertia
     structure = model.structure
@@ -510,6 +500,8 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
     blocks = jnp.concatenate([top, jnp.concatenate([zero33, inertia], axis=-1)], axis=-2)
     if held is not None:
         blocks = blocks + held
+    if contact is not None:
+        blocks = blocks + touch.added_blocks(contact, world)
 
     # Per slot (L, W): the joint's Jacobian toward its child body and toward its parent body.
     empty = tree_joint == num_joints
@@ -555,7 +547,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
 
 
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
-          angular: AngularRows | None = None):  # fmt: skip
+          angular: AngularRows | None = None, contact: touch.ContactRows | None = None):  # fmt: skip
     """The exact step of the linearised point constraints of the joint tree from where `bodies` are.
 
     factors: `factor` of the same model (at this configuration, or at one close to it: then the
@@ -564,9 +556,10 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     (J, 3) kg m, the point multipliers each joint has taken so far this substep (None: zero), which
     a regularised joint's constraint c + alpha lambda = 0 reads (DBD (47)). angular: the
     `angular_rows` the factors were built with (their residuals read their own multipliers), or None.
-    Returns dx (N + 1, 3) m and dtheta (N + 1, 3) rad to add (world row 0) and kappa (J, R), the
+    contact: the `tree_contacts.contact_rows` the factors were built with, or None.
+    Returns dx (N + 1, 3) m and dtheta (N + 1, 3) rad to add (world row 0), kappa (J, R), the
     multiplier step of each joint's rows (a point's: the impulse on body a, -kappa on b; 0 outside
-    the tree).
+    the tree), and the contact rows' multiplier steps (R_c,) (None without `contact`).
     """
     dtype = factors.inverses.dtype
     world, num_joints = model.structure.num_bodies, model.structure.num_joints
@@ -589,9 +582,10 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
         z = z.at[index[:, 1]].add(_mv(_mm(_transpose(jp), s_inv), z_joint))
         return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
-    _, right = jax.lax.scan(
-        eliminate, jnp.zeros((world + 1, 6), dtype), (factors.indices, factors.matrices, factors.inverses, gap)
-    )
+    start = jnp.zeros((world + 1, 6), dtype)
+    if contact is not None:  # a contact row's child is the world: z_j = -r, added to its body's z
+        start = touch.added_right_sides(contact, world)
+    _, right = jax.lax.scan(eliminate, start, (factors.indices, factors.matrices, factors.inverses, gap))
 
     def substitute(x, level):
         index, packed, inverse, z = level
@@ -608,7 +602,8 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
     tree_joint = np.where(factors.empty, num_joints, factors.joint)
     kappa = jnp.zeros((num_joints + 1, rows), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
-    return x[:, :3], x[:, 3:], kappa
+    contact_steps = None if contact is None else touch.row_steps(contact, x)
+    return x[:, :3], x[:, 3:], kappa, contact_steps
 
 
 def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
@@ -619,61 +614,112 @@ def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarr
     Returns dx (N + 1, 3) m, dtheta (N + 1, 3) rad (world row 0) and kappa (J, 3) kg m, the
     integrated impulse times h on body a of each joint (-kappa on b; 0 outside the tree).
     """
-    dx, dtheta, increments = direct_step(model, bodies)
+    dx, dtheta, increments, _ = direct_step(model, bodies)
     return dx, dtheta, increments[:, joint_family.POINT : joint_family.POINT + 3]
 
 
-def _solve_once(model: Model, bodies: BodySet, held, multipliers, targets, saturated=None):
-    """One `factor` and `solve` at the configuration of `bodies`: (dx, dtheta, increments, the
-    angular rows solved or None)."""
+class _Solved(NamedTuple):
+    """One `factor` and `solve` (`_solve_once`): the steps and the rows they solved."""
+
+    dx: jnp.ndarray  # (N + 1, 3)
+    dtheta: jnp.ndarray  # (N + 1, 3)
+    increments: jnp.ndarray  # (J, joints.NUM_MULTIPLIERS)
+    angular: AngularRows | None
+    contact: touch.ContactRows | None
+    contact_steps: jnp.ndarray | None  # (R_c,)
+
+
+def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, saturated=None,
+                settled=None) -> _Solved:  # fmt: skip
+    """One `factor` and `solve` at the configuration of `bodies`."""
+    structure = model.structure
     points = point_gaps(model, bodies)
     angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets, saturated)
     point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
-    factors = factor(model, bodies, held, points, angular)
-    dx, dtheta, kappa = solve(model, factors, bodies, point_multipliers, points, angular)
-    increments = jnp.zeros((model.structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
+    held = contact = None
+    if touching is not None:
+        held = touch.contact_hold(model, bodies, touching.slots)
+        contact = touch.contact_rows(model, bodies, touching, forest(structure)[1], settled)
+    factors = factor(model, bodies, held, points, angular, contact)
+    dx, dtheta, kappa, contact_steps = solve(model, factors, bodies, point_multipliers, points, angular, contact)
+    increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
     if angular is not None:
-        increments = angular_increments(model.structure, angular, kappa[:, 3:])
-    return dx, dtheta, increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3]), angular
+        increments = angular_increments(structure, angular, kappa[:, 3:])
+    increments = increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3])
+    return _Solved(dx, dtheta, increments, angular, contact, contact_steps)
 
 
-def direct_step(model: Model, bodies: BodySet, held: jnp.ndarray | None = None,
+def direct_step(model: Model, bodies: BodySet, touching: touch.Touching | None = None,
                 multipliers: jnp.ndarray | None = None, targets: tuple | None = None,
-                ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
+                ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, tuple]:  # fmt: skip
     """`factor` and `solve` at the configuration of `bodies`, its joints measured once: (dx, dtheta)
-    (N + 1, 3) to add and the multiplier steps (J, joints.NUM_MULTIPLIERS) of the rows solved.
+    (N + 1, 3) to add, the joints' multiplier steps (J, joints.NUM_MULTIPLIERS) and the contact
+    groups' ((C, 4 P) each, () without `touching`).
+    touching: the substep's contacts and their multipliers so far (`tree_contacts.Touching`): the
+    points between a body of the tree and the world are rows of the solve, the bodies of contacts
+    between two moving bodies held along their normals; None: no contacts.
     multipliers: (J, joints.NUM_MULTIPLIERS) so far this substep (None: zero). targets: (the
     substep's `joints.Targets`, h) to solve the joints' rotation locks, rotors, angle limits and
     drives with their points (`angular_rows`), or None for the points alone.
 
-    A drive with a torque limit (DBD (114)) is a linear row only while it stays inside it: where
-    the solve takes one past its limit, the limit's torque is applied as a load and the solve is
-    taken again from the same configuration without that drive (one step of an active set; a drive
-    the sweeps left at its limit is out from the start). Without it, one sweep of a torque-limited
-    arm followed by the solve held the arm up with 2.5 times the limit."""
+    Inequalities by one step of an active set. A contact point the solve would have pull lets go,
+    and one whose friction would leave its cone slides on it (`tree_contacts.settle`). A drive with
+    a torque limit (DBD (114)) is a linear row only while it stays inside it: one the solve takes
+    past its limit is held at the limit's torque (without it, one sweep of a torque-limited arm
+    followed by the solve held the arm up with 2.5 times the limit; a drive the sweeps left at its
+    limit is out from the start). Each such row's new multiplier step is applied to its bodies as
+    a load and the solve is taken again from there without it.
+    """
     structure = model.structure
-    dx, dtheta, increments, angular = _solve_once(model, bodies, held, multipliers, targets)
-    if angular is None or not _row_groups(structure)[3] or not structure.joint_drive_limited.array.any():
-        return dx, dtheta, increments
-    _, h = targets
-    lam = jnp.zeros_like(increments) if multipliers is None else multipliers
-    drive = slice(joint_family.DRIVE, joint_family.DRIVE + 3)
-    before, after = lam[:, drive], lam[:, drive] + increments[:, drive]
-    bound = model.joints.drive_max_torque[:, None] * h**2
-    ball = np.asarray(joint_family.flags(structure).ball_drive)[:, None]
-    size = jnp.where(ball, math.safe_norm(after, keepdims=True), jnp.abs(after))
-    saturated = angular.spring_on[-1] & (size > bound)
-    # (114); bound and size read only where saturated (an unlimited drive's inf bound would make
-    # the branch that is not taken inf, and its zero cotangent NaN in reverse mode).
-    scale = jnp.where(saturated, bound, 0.0) / jnp.where(saturated, size, 1.0)
-    limited = jnp.where(saturated, after * scale, after)
-    load = jnp.where(saturated, limited - before, 0.0)  # each saturated row's multiplier step
-    # The load turns b by I_b^-1 d load and a by -I_a^-1 d load, d each row's direction.
-    torque = jnp.einsum("jkc,jk->jc", angular.directions[:, -3:], load)
-    ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
-    turn = jnp.einsum("jsab,jsb->jsa", bodies.inv_inertia[ends], jnp.stack([-torque, torque], axis=1))
-    applied = jnp.zeros_like(bodies.dtheta).at[ends.reshape(-1)].add(turn.reshape(-1, 3))
-    loaded = bodies._replace(dtheta=bodies.dtheta + applied)
-    again = lam.at[:, drive].add(load)
-    dx, dtheta, increments, _ = _solve_once(model, loaded, held, again, targets, saturated)
-    return dx, dtheta + applied, increments.at[:, drive].add(load)
+    first = _solve_once(model, bodies, touching, multipliers, targets)
+    contact_increments = () if touching is None else touch.increments(touching, first.contact_steps)
+    lam = jnp.zeros_like(first.increments) if multipliers is None else multipliers
+    limited = first.angular is not None and _row_groups(structure).drives and structure.joint_drive_limited.array.any()
+    if not limited and touching is None:
+        return first.dx, first.dtheta, first.increments, contact_increments
+
+    saturated = changed = jnp.zeros((), bool)
+    settled = None
+    if limited:
+        _, h = targets
+        before, after = lam[:, _DRIVE], lam[:, _DRIVE] + first.increments[:, _DRIVE]
+        size, bound = _drive_torque(model, after, h)
+        saturated = first.angular.spring_on[-1] & (size > bound)
+        changed = jnp.any(saturated)
+    if touching is not None:
+        settled = touch.settle(touching, first.contact, first.contact_steps,
+                               jnp.concatenate([first.dx, first.dtheta], axis=-1))  # fmt: skip
+        changed = changed | settled.changed
+
+    def again(_):
+        drive_load = jnp.zeros_like(lam[:, _DRIVE])
+        dx_load, dtheta_load = jnp.zeros_like(bodies.dx), jnp.zeros_like(bodies.dtheta)
+        if limited:
+            # (114); bound and size read only where saturated (an unlimited drive's inf bound would
+            # make the branch that is not taken inf, and its zero cotangent NaN in reverse mode).
+            scale = jnp.where(saturated, bound, 0.0) / jnp.where(saturated, size, 1.0)
+            drive_load = jnp.where(saturated, after * scale - before, 0.0)  # each saturated row's multiplier step
+            # The load turns b by I_b^-1 d load and a by -I_a^-1 d load, d each row's direction.
+            torque = jnp.einsum("jkc,jk->jc", first.angular.directions[:, -3:], drive_load)
+            ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
+            turn = jnp.einsum("jsab,jsb->jsa", bodies.inv_inertia[ends], jnp.stack([-torque, torque], axis=1))
+            dtheta_load = dtheta_load.at[ends.reshape(-1)].add(turn.reshape(-1, 3))
+        again_touching = touching
+        if touching is not None:
+            contact_dx, contact_dtheta = touch.applied(first.contact, settled.load, bodies)
+            dx_load, dtheta_load = dx_load + contact_dx, dtheta_load + contact_dtheta
+            again_touching = touching._replace(multipliers=tuple(
+                lam_c + load_c for lam_c, load_c in zip(touching.multipliers, touch.increments(touching, settled.load),
+                                                        strict=True)))  # fmt: skip
+        loaded = bodies._replace(dx=bodies.dx + dx_load, dtheta=bodies.dtheta + dtheta_load)
+        second = _solve_once(model, loaded, again_touching, lam.at[:, _DRIVE].add(drive_load), targets,
+                             saturated if limited else None, settled)  # fmt: skip
+        contacts = ()
+        if touching is not None:
+            contacts = touch.increments(touching, second.contact_steps + settled.load)
+        return (second.dx + dx_load, second.dtheta + dtheta_load, second.increments.at[:, _DRIVE].add(drive_load),
+                contacts)  # fmt: skip
+
+    # Taken again only where a row changed (unbatched; under vmap both run, as a select).
+    unchanged = (first.dx, first.dtheta, first.increments, contact_increments)
+    return jax.lax.cond(changed, again, lambda _: unchanged, None)

@@ -1,0 +1,302 @@
+"""The contacts in the direct solves of `tree_solve` (solvers/tree.py): rows to the fixed world,
+unilateral and inside the friction cone by one active-set step.
+
+Why. Without them a direct step closes the joints by pulling a standing doll's feet toward its
+body, and it collapses. Session 24 held the touching bodies along their normals instead (a
+stiffness with no error and no multiplier, `contact_hold`, now only for contacts between two
+moving bodies): that hold carried the weight the contacts should (the standing ragdoll's feet took
+29 N of its 687 N), glued the feet in both directions and let a rising heel rise, so a leaning doll
+toppled forwards as a rigid plank (README, session 26).
+
+How. A contact point between a moving body and the world has three rows (DBD (84)-(91): the gap
+along n and the slip along t1, t2, as `contacts.project_contacts` has them), each touching one
+body: as a joint whose other side is the fixed world, it adds J^T alpha^-1 J to that body's block
+and J^T alpha^-1 (-r) to its right-hand side, and no loop to the tree (tree.py: a row whose child
+is the world has S = alpha). Its multiplier step after the solve is kappa = -(r + J dX) / alpha,
+DBD (49). The rows are rigid, alpha a regularisation 1 / (HOLD m) that leaves an error of
+kappa / (HOLD m) (a resting body's g h^2 / HOLD), plus the model's contact compliance on the normal
+row (r = c + compliance lambda_n, as the sweeps take it).
+
+Which rows. A point is in the solve where its slot is active and it pushes (lambda_n > 0) or
+penetrates; its friction rows where its friction is inside the cone (the sweeps left a sliding
+point's friction on the cone: it keeps that). After the solve, a point whose total lambda_n went
+negative lets go (lambda_n and its friction to 0), and one whose friction left the cone
+|kappa_t| <= mu lambda_n (93) slides with kappa_t on the cone, each such change applied to its body
+as a load and the solve taken again from there without those rows (`settle`, with the drives'
+torque limits in `tree.direct_step`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from dbdjax import integrator, math
+from dbdjax.constraints import contacts as contact_family
+from dbdjax.constraints.rows import BodySet
+from dbdjax.model import Model, with_world_row
+
+# The regularisation of a contact row, alpha = 1 / (HOLD m) with m its body's mass: the row then
+# leaves 1 / HOLD of what its body alone would move (its effective inverse mass is 1/m to a few
+# times that). Session 24's hold used the same stiffness (1000 m) to keep the standing ragdoll's
+# bodies within 0.8 mm of their build pose over 4 s.
+HOLD = 1000.0
+# A friction the sweeps left within this fraction of its cone is on the cone.
+ON_THE_CONE = 1e-4
+
+
+class Touching(NamedTuple):
+    """What the direct solves read of the substep's contacts."""
+
+    slots: tuple  # the substep's `collision.ContactSlots`, one per contact group
+    multipliers: tuple  # (C, 4 P) per group: (lambda_n, kappa_t1, kappa_t2, unused) per point so far
+    compliance_h2: float  # the model's contact compliance / h^2
+
+
+class ContactRows(NamedTuple):
+    """The rows of every contact group's points with the world, flattened: R = sum of 3 C P (n, t1,
+    t2 per point, group by group), each on one moving body."""
+
+    body: np.ndarray  # (R,) the moving body (the world for a row that is never on)
+    jacobian: jnp.ndarray  # (R, 6) dc / d(dx, dtheta) of that body
+    push: jnp.ndarray  # (R, 6) what a unit multiplier does to it: J, tilted by the friction of a sliding point
+    compliance: jnp.ndarray  # (R,) alpha
+    residual: jnp.ndarray  # (R,) r = c + alpha_compliance lambda (0 where off)
+    on: jnp.ndarray  # (R,) bool
+    multipliers: jnp.ndarray  # (R,) lambda so far
+    slide: jnp.ndarray  # (R,) a sliding point's friction rows: mu s_k, its step per unit normal step (else 0)
+    gap: jnp.ndarray  # (R,) each row's error c now, on or off (a normal row's: the gap along n)
+    touches: jnp.ndarray  # (R,) bool: the rows of points that may touch (slot active, a tree body on the world)
+
+
+class Settled(NamedTuple):
+    """`settle`'s active-set step, per row (R,) in `ContactRows` order."""
+
+    off: jnp.ndarray  # bool: the rows of the points that let go
+    sliding: jnp.ndarray  # bool: the rows of the points that slide (friction on the cone, no friction rows)
+    direction: jnp.ndarray  # a sliding point's rows: (0, s_1, s_2), its friction's unit direction in the plane
+    enter: jnp.ndarray  # bool: the rows of points that were out and the solve took into the floor
+    load: jnp.ndarray  # the multiplier step each row takes instead of the solve's (0: none)
+    changed: jnp.ndarray  # () bool: whether any point let go or slides
+
+
+def _sides(model: Model, group, tree_bodies: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Host side: (moving (C,), b_moves (C,), usable (C,)) of a contact group's pairs: the body
+    that moves, whether it is side b, and whether the pair is one moving body of the joint forest
+    (`tree_bodies`, its slots' bodies) against the world (a pair of two moving bodies would close a
+    loop; a body outside the forest gets no direct solve)."""
+    world = model.structure.num_bodies
+    pair = group.bodies.array
+    b_moves = pair[:, 0] == world
+    moving = np.where(b_moves, pair[:, 1], pair[:, 0])
+    in_forest = np.zeros(world + 1, dtype=bool)
+    in_forest[np.asarray(tree_bodies).reshape(-1)] = True
+    in_forest[world] = False
+    return moving, b_moves, ((pair == world).sum(axis=1) == 1) & in_forest[moving]
+
+
+def _group(rows: jnp.ndarray, start: int, slots) -> jnp.ndarray:
+    """(C, P, 3): one contact group's part of a flattened (R,) row array, from row `start`."""
+    pairs, points = slots.active.shape
+    return rows[start : start + 3 * pairs * points].reshape(pairs, points, 3)
+
+
+def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies: np.ndarray,
+                 settled: Settled | None = None) -> ContactRows:  # fmt: skip
+    """The rows of every point between a moving body of the joint forest and the world, at the
+    configuration of `bodies` (the solver's table, N + 1 rows, the world last). tree_bodies: the
+    forest's slot bodies (`tree.forest(structure)[1]`). settled: the active-set step `settle` took
+    (points that let go are off, sliding points have no friction rows), or None: every point that
+    pushes sticks."""
+    parts, start = [], 0
+    mass = with_world_row(model.bodies.mass)
+    for group, slots, lam in zip(model.structure.contact_groups, touching.slots, touching.multipliers, strict=True):
+        moving, b_moves, usable = _sides(model, group, tree_bodies)
+        pairs, points = slots.active.shape
+        lam = lam.reshape(pairs, points, contact_family.MULTIPLIERS_PER_POINT)[..., :3]
+        flip = b_moves[:, None, None]
+        local = jnp.where(flip, slots.local_b, slots.local_a)  # (C, P, 3) on the moving body
+        fixed = jnp.where(flip, slots.local_a, slots.local_b)  # (C, P, 3) world coordinates
+        quat = integrator.displaced_quat(bodies.quat[moving], bodies.dtheta[moving])  # X* + dX
+        arm = math.quat_rotate(quat[:, None, :], local)
+        point = (bodies.origin[moving][:, None] - fixed) + bodies.dx[moving][:, None] + arm  # moving - fixed
+        sign = np.where(b_moves, 1.0, -1.0)[:, None, None]
+        separation = sign * point  # p_b - p_a
+        directions = contact_family.row_directions(slots.normal)  # (C, P, 3, 3)
+        # the gap (p_b - p_a) . n (84) and the slip in the plane (89), as the sweeps measure them
+        error = jnp.einsum("cpki,cpi->cpk", directions, separation - slots.offset)
+        error = error.at[..., 0].set(jnp.einsum("cpi,cpi->cp", directions[..., 0, :], separation))
+        jacobian = sign[..., None] * jnp.concatenate([directions, math.cross(arm[..., None, :], directions)], -1)
+        regularisation = 1.0 / (HOLD * jnp.where(usable, mass[moving], 1.0))[:, None, None]  # finite off the forest
+        normal_row = np.arange(3) == 0
+        compliance = regularisation + jnp.where(normal_row, touching.compliance_h2, 0.0)
+        residual = error + jnp.where(normal_row, touching.compliance_h2 * lam, 0.0)
+        mu = jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])  # (C, P)
+        pushes = usable[:, None] & slots.active & ((lam[..., 0] > 0.0) | (error[..., 0] < 0.0))  # (C, P)
+        count = pairs * points * 3
+        if settled is None:
+            # Sliding where the point was already sliding at the start of the substep and the sweeps
+            # left its friction on the cone; a point at rest sticks first (`settle`).
+            friction_direction, friction_size = math.safe_normalize(
+                jnp.concatenate([lam[..., 1:], jnp.zeros_like(lam[..., :1])], -1)
+            )
+            friction_direction = friction_direction[..., :2]
+            on_cone = (friction_size > 0.0) & (friction_size >= (1.0 - ON_THE_CONE) * mu * lam[..., 0])
+            sliding = pushes & slots.sliding & on_cone
+        else:
+            touches = usable[:, None] & slots.active
+            pushes = (pushes | (touches & _group(settled.enter, start, slots)[..., 0])) & ~_group(
+                settled.off, start, slots
+            )[..., 0]
+            sliding = pushes & _group(settled.sliding, start, slots)[..., 0]
+            friction_direction = _group(settled.direction, start, slots)[..., 1:]
+        start += count
+        # A sliding point (its friction on the cone |kappa_t| = mu lambda_n, (93)) has no friction
+        # rows: its friction stays mu lambda_n along s = kappa_t / |kappa_t| as lambda_n changes,
+        # so its normal row pushes along J_n + mu (s_1 J_t1 + s_2 J_t2).
+        tilt = jnp.where(sliding[..., None], mu[..., None] * friction_direction, 0.0)  # (C, P, 2)
+        push = jacobian.at[..., 0, :].add(jnp.einsum("cpk,cpkj->cpj", tilt, jacobian[..., 1:, :]))
+        on = jnp.stack([pushes, pushes & ~sliding, pushes & ~sliding], axis=-1)
+        slide = jnp.concatenate([jnp.zeros_like(tilt[..., :1]), tilt], axis=-1)
+        body = np.broadcast_to(np.where(usable, moving, model.structure.num_bodies)[:, None, None], on.shape)
+        touches = jnp.broadcast_to((usable[:, None] & slots.active)[..., None], on.shape)
+        parts.append((body, jacobian, push, jnp.broadcast_to(compliance, on.shape), residual, on, lam, slide, error,
+                      touches))  # fmt: skip
+    body, jacobian, push, compliance, residual, on, lam, slide, error, touches = (
+        [part.reshape((-1,) + part.shape[3:]) for part in column] for column in zip(*parts, strict=True)
+    )
+    on = jnp.concatenate(on)
+    return ContactRows(
+        body=np.concatenate(body),
+        jacobian=jnp.concatenate(jacobian),
+        push=jnp.concatenate(push),
+        compliance=jnp.concatenate(compliance),
+        residual=jnp.where(on, jnp.concatenate(residual), 0.0),
+        on=on,
+        multipliers=jnp.concatenate(lam),
+        slide=jnp.concatenate(slide),
+        gap=jnp.concatenate(error),
+        touches=jnp.concatenate(touches),
+    )
+
+
+def added_blocks(rows: ContactRows, num_bodies: int) -> jnp.ndarray:
+    """(N + 1, 6, 6) what the rows that are on add to their bodies' blocks: sum P^T alpha^-1 J, P the
+    row's push (J, or tilted by a sliding point's friction: then the block is not symmetric)."""
+    weight = jnp.where(rows.on, 1.0 / rows.compliance, 0.0)  # (R,)
+    block = weight[:, None, None] * rows.push[:, :, None] * rows.jacobian[:, None, :]
+    return jnp.zeros((num_bodies + 1, 6, 6), block.dtype).at[rows.body].add(block)
+
+
+def added_right_sides(rows: ContactRows, num_bodies: int) -> jnp.ndarray:
+    """(N + 1, 6) what the rows that are on add to their bodies' right-hand sides z: sum P^T alpha^-1 (-r)."""
+    right = jnp.where(rows.on, -rows.residual / rows.compliance, 0.0)[:, None] * rows.push
+    return jnp.zeros((num_bodies + 1, 6), right.dtype).at[rows.body].add(right)
+
+
+def row_steps(rows: ContactRows, step: jnp.ndarray) -> jnp.ndarray:
+    """(R,) each row's multiplier step kappa = -(r + J dX) / alpha, given the solve's (N + 1, 6) step
+    (dx, dtheta) of every body, a sliding point's friction mu s times its normal's; 0 where off."""
+    moved = jnp.sum(rows.jacobian * step[rows.body], axis=-1)
+    steps = jnp.where(rows.on, -(rows.residual + moved) / rows.compliance, 0.0).reshape(-1, 3)
+    return (steps + rows.slide.reshape(-1, 3) * steps[:, :1]).reshape(-1)
+
+
+def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.ndarray) -> Settled:
+    """One active-set step on the solve's contact multiplier steps (R,), every point that pushes
+    sticking. A point whose total lambda_n would pull lets go: its three multipliers to 0, its rows
+    off. A point whose friction would leave the cone |kappa_t| <= mu lambda_n (DBD (93)) slides:
+    its friction goes on the cone of its lambda_n so far, along where the solve took it, and the
+    solve taken again has its normal row push along the friction too (`contact_rows`). (A point
+    the sweeps left sliding is taken as sticking first: with one sweep its lambda_n is still short
+    of its load, and a box held on a 25-degree slope by mu = 0.5 crept 7 mm/s as four sliding corners.)
+    A point that was out of the solve and that its step (N + 1, 6) takes into the floor enters it.
+    (Without, Brax's ant at 4 iterations rebounded 0.3 J after landing: the solve pushed feet that
+    had only just touched into the floor.)"""
+    moved = jnp.sum(rows.jacobian * step[rows.body], axis=-1)
+    offs, slidings, directions, loads, enters, start = [], [], [], [], [], 0
+    changed = jnp.zeros((), bool)
+    for slots in touching.slots:
+        pairs, points = slots.active.shape
+        count = pairs * points * 3
+        shape = (pairs, points, 3)
+        lam = rows.multipliers[start : start + count].reshape(shape)
+        on = rows.on[start : start + count].reshape(shape)
+        total = lam + steps[start : start + count].reshape(shape)
+        along = rows.jacobian[start : start + count, :3].reshape(shape + (3,))  # +-(n, t1, t2)
+        gap_after = (rows.gap + moved)[start : start + count].reshape(shape)[..., 0]  # linearised
+        enter = rows.touches[start : start + count].reshape(shape)[..., 0] & ~on[..., 0] & (gap_after < 0.0)
+        start += count
+        lets_go = on[..., 0] & (total[..., 0] < 0.0)  # (C, P)
+        mu = jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])
+        direction, size = math.safe_normalize(jnp.concatenate([total[..., 1:], jnp.zeros_like(total[..., :1])], -1))
+        sticking = on[..., 1] & ~lets_go
+        capacity = mu * jnp.maximum(total[..., 0], 0.0)
+        # Each point within its own cone, and each pair within the sum of its points' cones: a body
+        # whose friction in all exceeds what its points can give slides on all of them (its points'
+        # frictions are not unique, and a solve that put more of it where there is more load would
+        # still exceed; without this a stack on a 35-degree slope, mu = 0.5, stuck with its downhill
+        # corners past their cones once its uphill ones slid).
+        friction = jnp.where(sticking[..., None], total[..., 1:], 0.0)
+        world_friction = jnp.einsum("cpk,cpki->ci", friction, along[..., 1:, :])
+        pair_slides = math.safe_norm(world_friction) > jnp.sum(jnp.where(sticking, capacity, 0.0), axis=-1)  # (C,)
+        slides = sticking & ((size > capacity) | pair_slides[:, None])
+        slid = on[..., 0] & ~on[..., 1] & ~lets_go  # sliding in this solve already: stays so
+        friction = mu[..., None] * lam[..., :1] * direction[..., :2] - lam[..., 1:]
+        load = jnp.where(lets_go[..., None], -lam, 0.0)
+        load = load.at[..., 1:].add(jnp.where(slides[..., None], friction, 0.0))
+        loads.append(load.reshape(-1))
+        offs.append(jnp.repeat(lets_go[..., None], 3, axis=-1).reshape(-1))
+        slidings.append(jnp.repeat((slides | slid)[..., None], 3, axis=-1).reshape(-1))
+        directions.append(jnp.concatenate([jnp.zeros_like(size)[..., None], direction[..., :2]], axis=-1).reshape(-1))
+        enters.append(jnp.repeat(enter[..., None], 3, axis=-1).reshape(-1))
+        changed = changed | jnp.any(lets_go) | jnp.any(slides) | jnp.any(enter)
+    off, sliding, direction, load, enter = (jnp.concatenate(x) for x in (offs, slidings, directions, loads, enters))
+    return Settled(off=off, sliding=sliding, direction=direction, load=load, changed=changed, enter=enter)
+
+
+def applied(rows: ContactRows, load: jnp.ndarray, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(dx, dtheta) (N + 1, 3) that the loads (R,) move the bodies by on their own: M~^-1 J^T load."""
+    push = load[:, None] * rows.jacobian  # (R, 6): J^T load
+    moved = jnp.zeros((len(bodies.dx), 6), push.dtype).at[rows.body].add(push)
+    dx = bodies.inv_mass[:, None] * moved[:, :3]
+    dtheta = jnp.einsum("nij,nj->ni", bodies.inv_inertia, moved[:, 3:])
+    return dx, dtheta
+
+
+def increments(touching: Touching, steps: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
+    """The rows' multiplier steps (R,) in the contact families' layout: (C, 4 P) per group."""
+    result, start = [], 0
+    for slots in touching.slots:
+        pairs, points = slots.active.shape
+        count = pairs * points * 3
+        step = steps[start : start + count].reshape(pairs, points, 3)
+        start += count
+        result.append(jnp.concatenate([step, jnp.zeros_like(step[..., :1])], axis=-1).reshape(pairs, -1))
+    return tuple(result)
+
+
+def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray | None:
+    """(N + 1, 6, 6) stiffness that holds the bodies of contacts between two moving bodies (which
+    would close loops as rows) along their normals in the direct solve: k J^T J per slot and side,
+    J = n^T [1, -[r]x] the point's normal row, k = HOLD x the body's mass. No error and no
+    multiplier: it shapes the step, the sweeps' contact rows keep the last word. None where no
+    contact group has such pairs. contacts: the substep's `collision.ContactSlots`."""
+    world = model.structure.num_bodies
+    dtype = bodies.inv_inertia.dtype
+    held = None
+    mass = with_world_row(model.bodies.mass)
+    for group, slots in zip(model.structure.contact_groups, contacts, strict=True):
+        both_move = (group.bodies.array != world).all(axis=1)
+        if not both_move.any():
+            continue
+        held = jnp.zeros((world + 1, 6, 6), dtype) if held is None else held
+        for side, local in enumerate((slots.local_a, slots.local_b)):
+            body = np.where(both_move, group.bodies.array[:, side], world)  # (C,)
+            arm = math.quat_rotate(bodies.quat[body][:, None, :], local)  # (C, P, 3) from the centre
+            normal = jnp.concatenate([slots.normal, math.cross(arm, slots.normal)], axis=-1)  # n . (dx + dtheta x r)
+            k = HOLD * mass[body][:, None] * (slots.active & both_move[:, None]).astype(dtype)  # (C, P)
+            held = held.at[body].add(jnp.sum(k[..., None, None] * normal[..., :, None] * normal[..., None, :], axis=1))
+    return held
