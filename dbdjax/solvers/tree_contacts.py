@@ -5,7 +5,7 @@ Why. Without them a direct step closes the joints by pulling a standing doll's f
 body, and it collapses. Session 24 held the touching bodies along their normals instead (a
 stiffness with no error and no multiplier, `contact_hold`, now only for contacts between two
 moving bodies): that hold carried the weight the contacts should (the standing ragdoll's feet took
-29 N of its 687 N), glued the feet in both directions and let a rising heel rise, so a leaning doll
+29 N of its 687 N), glued the feet in both directions and did not pull a rising heel back, so a leaning doll
 toppled forwards as a rigid plank (README, session 26).
 
 How. A contact point between a moving body and the world has three rows (DBD (84)-(91): the gap
@@ -17,13 +17,16 @@ DBD (49). The rows are rigid, alpha a regularisation 1 / (HOLD m) that leaves an
 kappa / (HOLD m) (a resting body's g h^2 / HOLD), plus the model's contact compliance on the normal
 row (r = c + compliance lambda_n, as the sweeps take it).
 
-Which rows. A point is in the solve where its slot is active and it pushes (lambda_n > 0) or
-penetrates; its friction rows where its friction is inside the cone (the sweeps left a sliding
-point's friction on the cone: it keeps that). After the solve, a point whose total lambda_n went
-negative lets go (lambda_n and its friction to 0), and one whose friction left the cone
-|kappa_t| <= mu lambda_n (93) slides with kappa_t on the cone, each such change applied to its body
-as a load and the solve taken again from there without those rows (`settle`, with the drives'
-torque limits in `tree.direct_step`).
+Which rows (`contact_rows`, then one active-set step, `settle`, taken with the drives' torque limits
+in `tree.direct_step`). A point is in the solve where its slot is active and it pushes (lambda_n >
+0) or penetrates, and sticks, unless it was sliding at the start of the substep and the sweeps left
+its friction on the cone |kappa_t| = mu lambda_n (93): then it slides, without friction rows, its
+normal row pushing along J_n + mu s J_t (s its friction's direction), so that its friction stays mu
+lambda_n as lambda_n changes. After the solve: a point whose total lambda_n would pull lets go
+(lambda_n and its friction to 0); a sticking point whose friction leaves its cone, or every sticking
+point of a pair whose friction in all exceeds the sum of its points' cones, slides (its friction on
+the cone of its lambda_n so far); a point that was out and that the solve takes into the floor
+comes in. Each change is applied to its body as a load and the solve is taken again from there.
 """
 
 from __future__ import annotations
@@ -134,7 +137,8 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
         compliance = regularisation + jnp.where(normal_row, touching.compliance_h2, 0.0)
         residual = error + jnp.where(normal_row, touching.compliance_h2 * lam, 0.0)
         mu = jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])  # (C, P)
-        pushes = usable[:, None] & slots.active & ((lam[..., 0] > 0.0) | (error[..., 0] < 0.0))  # (C, P)
+        touches = usable[:, None] & slots.active  # (C, P)
+        pushes = touches & ((lam[..., 0] > 0.0) | (error[..., 0] < 0.0))
         count = pairs * points * 3
         if settled is None:
             # Sliding where the point was already sliding at the start of the substep and the sweeps
@@ -146,10 +150,8 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
             on_cone = (friction_size > 0.0) & (friction_size >= (1.0 - ON_THE_CONE) * mu * lam[..., 0])
             sliding = pushes & slots.sliding & on_cone
         else:
-            touches = usable[:, None] & slots.active
-            pushes = (pushes | (touches & _group(settled.enter, start, slots)[..., 0])) & ~_group(
-                settled.off, start, slots
-            )[..., 0]
+            enter, off = (_group(settled.enter, start, slots)[..., 0], _group(settled.off, start, slots)[..., 0])
+            pushes = (pushes | (touches & enter)) & ~off
             sliding = pushes & _group(settled.sliding, start, slots)[..., 0]
             friction_direction = _group(settled.direction, start, slots)[..., 1:]
         start += count
@@ -161,9 +163,8 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
         on = jnp.stack([pushes, pushes & ~sliding, pushes & ~sliding], axis=-1)
         slide = jnp.concatenate([jnp.zeros_like(tilt[..., :1]), tilt], axis=-1)
         body = np.broadcast_to(np.where(usable, moving, model.structure.num_bodies)[:, None, None], on.shape)
-        touches = jnp.broadcast_to((usable[:, None] & slots.active)[..., None], on.shape)
         parts.append((body, jacobian, push, jnp.broadcast_to(compliance, on.shape), residual, on, lam, slide, error,
-                      touches))  # fmt: skip
+                      jnp.broadcast_to(touches[..., None], on.shape)))  # fmt: skip
     body, jacobian, push, compliance, residual, on, lam, slide, error, touches = (
         [part.reshape((-1,) + part.shape[3:]) for part in column] for column in zip(*parts, strict=True)
     )
