@@ -1112,7 +1112,8 @@ class ModelBuilder:
           0.0001 mm (170 mm without). A tree body's contacts with the world are rows of every
           direct solve, unilateral and within the friction cone by one active-set step
           (solvers/tree_contacts.py): they carry the load (a standing ragdoll's 687 N on its feet)
-          and a leaning ragdoll stands at 1 substep x 1 iteration. After the last sweep one more direct solve takes each
+          and a leaning ragdoll stands at 1 substep x 1 iteration (under the env's pushes it
+          needs 2 substeps: README, session 27). After the last sweep one more direct solve takes each
           tree joint whole: point, rotation lock, rotors (armature), the soft angle limits past their
           bounds and its drive within its torque limit, so a joint with a heavy rotor, pressed on a
           limit or driven is solved with its point (Brax's dropped ant lands at 1 iteration as at 32

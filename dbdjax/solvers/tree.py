@@ -71,7 +71,7 @@ from dbdjax.constraints import joints as joint_family
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
 from dbdjax.model import BALL, FIXED, GIMBAL, HINGE, UNIVERSAL, Model, Structure
-from dbdjax.solvers import tree_contacts as touch
+from dbdjax.solvers import tree_contacts
 
 # Joint kinds whose point constraint is a full 3-D one (a slider's acts only across its axis).
 POINT_KINDS = (BALL, HINGE, FIXED, UNIVERSAL, GIMBAL)
@@ -471,7 +471,8 @@ class Factors(NamedTuple):
 
 
 def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None,
-           angular: AngularRows | None = None, contact: touch.ContactRows | None = None) -> Factors:  # fmt: skip
+           angular: AngularRows | None = None,
+           contact: tree_contacts.ContactRows | None = None) -> Factors:  # fmt: skip
     """Eliminate the tree's linearised point constraints (and angular rows) at the configuration of
     `bodies`.
 
@@ -501,7 +502,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
     if held is not None:
         blocks = blocks + held
     if contact is not None:
-        blocks = blocks + touch.added_blocks(contact, world)
+        blocks = blocks + tree_contacts.added_blocks(contact, world)
 
     # Per slot (L, W): the joint's Jacobian toward its child body and toward its parent body.
     empty = tree_joint == num_joints
@@ -547,7 +548,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
 
 
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
-          angular: AngularRows | None = None, contact: touch.ContactRows | None = None):  # fmt: skip
+          angular: AngularRows | None = None, contact: tree_contacts.ContactRows | None = None):  # fmt: skip
     """The exact step of the linearised point constraints of the joint tree from where `bodies` are.
 
     factors: `factor` of the same model (at this configuration, or at one close to it: then the
@@ -584,7 +585,7 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
 
     start = jnp.zeros((world + 1, 6), dtype)
     if contact is not None:  # a contact row's child is the world: z_j = -r, added to its body's z
-        start = touch.added_right_sides(contact, world)
+        start = tree_contacts.added_right_sides(contact, world)
     _, right = jax.lax.scan(eliminate, start, (factors.indices, factors.matrices, factors.inverses, gap))
 
     def substitute(x, level):
@@ -602,7 +603,7 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
     tree_joint = np.where(factors.empty, num_joints, factors.joint)
     kappa = jnp.zeros((num_joints + 1, rows), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
-    contact_steps = None if contact is None else touch.row_steps(contact, x)
+    contact_steps = None if contact is None else tree_contacts.row_steps(contact, x)
     return x[:, :3], x[:, 3:], kappa, contact_steps
 
 
@@ -625,7 +626,7 @@ class _Solved(NamedTuple):
     dtheta: jnp.ndarray  # (N + 1, 3)
     increments: jnp.ndarray  # (J, joints.NUM_MULTIPLIERS)
     angular: AngularRows | None
-    contact: touch.ContactRows | None
+    contact: tree_contacts.ContactRows | None
     contact_steps: jnp.ndarray | None  # (R_c,)
 
 
@@ -638,8 +639,8 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
     held = contact = None
     if touching is not None:
-        held = touch.contact_hold(model, bodies, touching.slots)
-        contact = touch.contact_rows(model, bodies, touching, forest(structure)[1], settled)
+        held = tree_contacts.contact_hold(model, bodies, touching.slots)
+        contact = tree_contacts.contact_rows(model, bodies, touching, forest(structure)[1], settled)
     factors = factor(model, bodies, held, points, angular, contact)
     dx, dtheta, kappa, contact_steps = solve(model, factors, bodies, point_multipliers, points, angular, contact)
     increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
@@ -649,7 +650,7 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     return _Solved(dx, dtheta, increments, angular, contact, contact_steps)
 
 
-def direct_step(model: Model, bodies: BodySet, touching: touch.Touching | None = None,
+def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching | None = None,
                 multipliers: jnp.ndarray | None = None, targets: tuple | None = None,
                 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, tuple]:  # fmt: skip
     """`factor` and `solve` at the configuration of `bodies`, its joints measured once: (dx, dtheta)
@@ -672,7 +673,7 @@ def direct_step(model: Model, bodies: BodySet, touching: touch.Touching | None =
     """
     structure = model.structure
     first = _solve_once(model, bodies, touching, multipliers, targets)
-    contact_increments = () if touching is None else touch.increments(touching, first.contact_steps)
+    contact_increments = () if touching is None else tree_contacts.increments(touching, first.contact_steps)
     lam = jnp.zeros_like(first.increments) if multipliers is None else multipliers
     limited = first.angular is not None and _row_groups(structure).drives and structure.joint_drive_limited.array.any()
     if not limited and touching is None:
@@ -687,7 +688,7 @@ def direct_step(model: Model, bodies: BodySet, touching: touch.Touching | None =
         saturated = first.angular.spring_on[-1] & (size > bound)
         changed = jnp.any(saturated)
     if touching is not None:
-        settled = touch.settle(touching, first.contact, first.contact_steps,
+        settled = tree_contacts.settle(touching, first.contact, first.contact_steps,
                                jnp.concatenate([first.dx, first.dtheta], axis=-1))  # fmt: skip
         changed = changed | settled.changed
 
@@ -706,17 +707,18 @@ def direct_step(model: Model, bodies: BodySet, touching: touch.Touching | None =
             dtheta_load = dtheta_load.at[ends.reshape(-1)].add(turn.reshape(-1, 3))
         again_touching = touching
         if touching is not None:
-            contact_dx, contact_dtheta = touch.applied(first.contact, settled.load, bodies)
+            contact_dx, contact_dtheta = tree_contacts.applied(first.contact, settled.load, bodies)
             dx_load, dtheta_load = dx_load + contact_dx, dtheta_load + contact_dtheta
-            again_touching = touching._replace(multipliers=tuple(
-                lam_c + load_c for lam_c, load_c in zip(touching.multipliers, touch.increments(touching, settled.load),
-                                                        strict=True)))  # fmt: skip
+            loads = tree_contacts.increments(touching, settled.load)
+            again_touching = touching._replace(
+                multipliers=tuple(lam_c + load_c for lam_c, load_c in zip(touching.multipliers, loads, strict=True))
+            )
         loaded = bodies._replace(dx=bodies.dx + dx_load, dtheta=bodies.dtheta + dtheta_load)
         second = _solve_once(model, loaded, again_touching, lam.at[:, _DRIVE].add(drive_load), targets,
                              saturated if limited else None, settled)  # fmt: skip
         contacts = ()
         if touching is not None:
-            contacts = touch.increments(touching, second.contact_steps + settled.load)
+            contacts = tree_contacts.increments(touching, second.contact_steps + settled.load)
         return (second.dx + dx_load, second.dtheta + dtheta_load, second.increments.at[:, _DRIVE].add(drive_load),
                 contacts)  # fmt: skip
 
