@@ -282,10 +282,15 @@ def solve(
             first_contact = len(all_families) - len(contacts)
             solved = (0,) + tuple(range(first_contact, len(all_families)))
             compliance_h2 = options.contact_compliance / h**2
+            # Contacts between two moving bodies are held, not rows (tree_contacts.contact_hold): once a
+            # substep, at X*, like the rows' bodies' inertias.
+            held = tree_contacts.contact_hold(model, table, contacts) if contacts else None
 
             def direct(dx, dtheta, lams, targets=None):
                 bodies = table._replace(dx=dx, dtheta=dtheta)
-                touching = tree_contacts.Touching(tuple(contacts), tuple(lams[1:]), compliance_h2) if contacts else None
+                touching = None
+                if contacts:
+                    touching = tree_contacts.Touching(tuple(contacts), tuple(lams[1:]), compliance_h2, held)
                 step_dx, step_dtheta, joint_steps, contact_steps = tree.direct_step(
                     model, bodies, touching, lams[0], targets
                 )

@@ -639,7 +639,7 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
     held = contact = None
     if touching is not None:
-        held = tree_contacts.contact_hold(model, bodies, touching.slots)
+        held = touching.held
         contact = tree_contacts.contact_rows(model, bodies, touching, forest(structure)[1], settled)
     factors = factor(model, bodies, held, points, angular, contact)
     dx, dtheta, kappa, contact_steps = solve(model, factors, bodies, point_multipliers, points, angular, contact)
@@ -694,25 +694,25 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
 
     def again(_):
         drive_load = jnp.zeros_like(lam[:, _DRIVE])
-        dx_load, dtheta_load = jnp.zeros_like(bodies.dx), jnp.zeros_like(bodies.dtheta)
+        load = jnp.zeros((structure.num_bodies + 1, 6), bodies.dx.dtype)  # force and torque on each body
         if limited:
             # (114); bound and size read only where saturated (an unlimited drive's inf bound would
             # make the branch that is not taken inf, and its zero cotangent NaN in reverse mode).
             scale = jnp.where(saturated, bound, 0.0) / jnp.where(saturated, size, 1.0)
             drive_load = jnp.where(saturated, after * scale - before, 0.0)  # each saturated row's multiplier step
-            # The load turns b by I_b^-1 d load and a by -I_a^-1 d load, d each row's direction.
+            # The load turns b by d load and a by -d load, d each row's direction.
             torque = jnp.einsum("jkc,jk->jc", first.angular.directions[:, -3:], drive_load)
             ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
-            turn = jnp.einsum("jsab,jsb->jsa", bodies.inv_inertia[ends], jnp.stack([-torque, torque], axis=1))
-            dtheta_load = dtheta_load.at[ends.reshape(-1)].add(turn.reshape(-1, 3))
+            load = load.at[ends.reshape(-1), 3:].add(jnp.stack([-torque, torque], axis=1).reshape(-1, 3))
         again_touching = touching
         if touching is not None:
-            contact_dx, contact_dtheta = tree_contacts.applied(first.contact, settled.load, bodies)
-            dx_load, dtheta_load = dx_load + contact_dx, dtheta_load + contact_dtheta
+            load = load + tree_contacts.applied(first.contact, settled.load, structure.num_bodies)
             loads = tree_contacts.increments(touching, settled.load)
             again_touching = touching._replace(
                 multipliers=tuple(lam_c + load_c for lam_c, load_c in zip(touching.multipliers, loads, strict=True))
             )
+        dx_load = bodies.inv_mass[:, None] * load[:, :3]  # M~^-1 of it, each body on its own
+        dtheta_load = jnp.einsum("nij,nj->ni", bodies.inv_inertia, load[:, 3:])
         loaded = bodies._replace(dx=bodies.dx + dx_load, dtheta=bodies.dtheta + dtheta_load)
         second = _solve_once(model, loaded, again_touching, lam.at[:, _DRIVE].add(drive_load), targets,
                              saturated if limited else None, settled)  # fmt: skip

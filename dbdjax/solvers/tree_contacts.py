@@ -56,6 +56,7 @@ class Touching(NamedTuple):
     slots: tuple  # the substep's `collision.ContactSlots`, one per contact group
     multipliers: tuple  # (C, 4 P) per group: (lambda_n, kappa_t1, kappa_t2, unused) per point so far
     compliance_h2: float  # the model's contact compliance / h^2
+    held: jnp.ndarray | None = None  # (N + 1, 6, 6) `contact_hold` of the substep, or None
 
 
 class ContactRows(NamedTuple):
@@ -100,10 +101,14 @@ def _sides(model: Model, group, tree_bodies: np.ndarray) -> tuple[np.ndarray, np
     return moving, b_moves, ((pair == world).sum(axis=1) == 1) & in_forest[moving]
 
 
-def _group(rows: jnp.ndarray, start: int, slots) -> jnp.ndarray:
-    """(C, P, 3): one contact group's part of a flattened (R,) row array, from row `start`."""
-    pairs, points = slots.active.shape
-    return rows[start : start + 3 * pairs * points].reshape(pairs, points, 3)
+def _grouped(rows: jnp.ndarray, touching: Touching) -> list[jnp.ndarray]:
+    """A flattened (R, ...) row array split into its contact groups' parts, (C, P, 3, ...) each."""
+    parts, start = [], 0
+    for slots in touching.slots:
+        pairs, points = slots.active.shape
+        parts.append(rows[start : start + 3 * pairs * points].reshape((pairs, points, 3) + rows.shape[1:]))
+        start += 3 * pairs * points
+    return parts
 
 
 def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies: np.ndarray,
@@ -113,8 +118,11 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
     forest's slot bodies (`tree.forest(structure)[1]`). settled: the active-set step `settle` took
     (points that let go are off, sliding points have no friction rows), or None: every point that
     pushes sticks."""
-    parts, start = [], 0
+    parts = []
     mass = with_world_row(model.bodies.mass)
+    if settled is not None:  # per group, per point (each point's three rows share these)
+        fields = (settled.enter, settled.off, settled.sliding, settled.direction)
+        settled_parts = zip(*(_grouped(x, touching) for x in fields), strict=True)
     for group, slots, lam in zip(model.structure.contact_groups, touching.slots, touching.multipliers, strict=True):
         moving, b_moves, usable = _sides(model, group, tree_bodies)
         pairs, points = slots.active.shape
@@ -139,7 +147,6 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
         mu = jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])  # (C, P)
         touches = usable[:, None] & slots.active  # (C, P)
         pushes = touches & ((lam[..., 0] > 0.0) | (error[..., 0] < 0.0))
-        count = pairs * points * 3
         if settled is None:
             # Sliding where the point was already sliding at the start of the substep and the sweeps
             # left its friction on the cone; a point at rest sticks first (`settle`).
@@ -150,11 +157,10 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
             on_cone = (friction_size > 0.0) & (friction_size >= (1.0 - ON_THE_CONE) * mu * lam[..., 0])
             sliding = pushes & slots.sliding & on_cone
         else:
-            enter, off = (_group(settled.enter, start, slots)[..., 0], _group(settled.off, start, slots)[..., 0])
-            pushes = (pushes | (touches & enter)) & ~off
-            sliding = pushes & _group(settled.sliding, start, slots)[..., 0]
-            friction_direction = _group(settled.direction, start, slots)[..., 1:]
-        start += count
+            enter, off, slides, direction = next(settled_parts)
+            pushes = (pushes | (touches & enter[..., 0])) & ~off[..., 0]
+            sliding = pushes & slides[..., 0]
+            friction_direction = direction[..., 1:]
         # A sliding point (its friction on the cone |kappa_t| = mu lambda_n, (93)) has no friction
         # rows: its friction stays mu lambda_n along s = kappa_t / |kappa_t| as lambda_n changes,
         # so its normal row pushes along J_n + mu (s_1 J_t1 + s_2 J_t2).
@@ -217,19 +223,13 @@ def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.
     (Without, Brax's ant at 4 iterations rebounded 0.3 J after landing: the solve pushed feet that
     had only just touched into the floor.)"""
     moved = jnp.sum(rows.jacobian * step[rows.body], axis=-1)
-    offs, slidings, directions, loads, enters, start = [], [], [], [], [], 0
+    offs, slidings, directions, loads, enters = [], [], [], [], []
     changed = jnp.zeros((), bool)
-    for slots in touching.slots:
-        pairs, points = slots.active.shape
-        count = pairs * points * 3
-        shape = (pairs, points, 3)
-        lam = rows.multipliers[start : start + count].reshape(shape)
-        on = rows.on[start : start + count].reshape(shape)
-        total = lam + steps[start : start + count].reshape(shape)
-        along = rows.jacobian[start : start + count, :3].reshape(shape + (3,))  # +-(n, t1, t2)
-        gap_after = (rows.gap + moved)[start : start + count].reshape(shape)[..., 0]  # linearised
-        enter = rows.touches[start : start + count].reshape(shape)[..., 0] & ~on[..., 0] & (gap_after < 0.0)
-        start += count
+    per_group = (_grouped(x, touching) for x in (rows.multipliers, rows.on, steps, rows.jacobian[:, :3],
+                                                  rows.gap + moved, rows.touches))  # fmt: skip
+    for slots, lam, on, step_here, along, gap_after, touches in zip(touching.slots, *per_group, strict=True):
+        total = lam + step_here  # along: +-(n, t1, t2); gap_after: linearised
+        enter = touches[..., 0] & ~on[..., 0] & (gap_after[..., 0] < 0.0)
         lets_go = on[..., 0] & (total[..., 0] < 0.0)  # (C, P)
         mu = jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])
         direction, size = math.safe_normalize(jnp.concatenate([total[..., 1:], jnp.zeros_like(total[..., :1])], -1))
@@ -258,25 +258,17 @@ def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.
     return Settled(off=off, sliding=sliding, direction=direction, load=load, changed=changed, enter=enter)
 
 
-def applied(rows: ContactRows, load: jnp.ndarray, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(dx, dtheta) (N + 1, 3) that the loads (R,) move the bodies by on their own: M~^-1 J^T load."""
-    push = load[:, None] * rows.jacobian  # (R, 6): J^T load
-    moved = jnp.zeros((len(bodies.dx), 6), push.dtype).at[rows.body].add(push)
-    dx = bodies.inv_mass[:, None] * moved[:, :3]
-    dtheta = jnp.einsum("nij,nj->ni", bodies.inv_inertia, moved[:, 3:])
-    return dx, dtheta
+def applied(rows: ContactRows, load: jnp.ndarray, num_bodies: int) -> jnp.ndarray:
+    """(N + 1, 6) the force and torque J^T load that the rows' loads (R,) put on their bodies."""
+    return jnp.zeros((num_bodies + 1, 6), load.dtype).at[rows.body].add(load[:, None] * rows.jacobian)
 
 
 def increments(touching: Touching, steps: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
     """The rows' multiplier steps (R,) in the contact families' layout: (C, 4 P) per group."""
-    result, start = [], 0
-    for slots in touching.slots:
-        pairs, points = slots.active.shape
-        count = pairs * points * 3
-        step = steps[start : start + count].reshape(pairs, points, 3)
-        start += count
-        result.append(jnp.concatenate([step, jnp.zeros_like(step[..., :1])], axis=-1).reshape(pairs, -1))
-    return tuple(result)
+    return tuple(
+        jnp.concatenate([step, jnp.zeros_like(step[..., :1])], axis=-1).reshape(len(step), -1)
+        for step in _grouped(steps, touching)
+    )
 
 
 def contact_hold(model: Model, bodies: BodySet, contacts: tuple) -> jnp.ndarray | None:
