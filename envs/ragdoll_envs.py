@@ -102,9 +102,10 @@ class RagdollEnv(DbdFuncEnv):
     (None: its defaults). push_interval: s between pushes on average (None: no pushes).
     push_speed: (low, high) m/s (module docstring: why 0.2-0.6). fall_height: m, the pelvis height
     that ends the episode (None: 0.55 x the standing height). smooth_weight: weight of the action-change penalty.
-    dt, substeps, iterations, tree_solve: the physics (`ModelBuilder.finalize`); tree_solve=True with
-    2 substeps x 2 iterations survives the pushes as the default 4 x 8 sweeps do at 2.4x their env
-    steps/s, with 1 substep it does not (README, session 27).
+    dt, substeps, iterations, tree_solve: the physics (`ModelBuilder.finalize`). tree_solve=True is
+    not fit for training yet: at 2 substeps x 2 iterations it survived scripted pushes as the default
+    4 x 8 sweeps do (session 27), but under a PPO policy's actions a foot point that starts sliding
+    blows the leg up from rest (12 of 128 episodes; README, session 28).
     """
 
     default_max_episode_steps = 300

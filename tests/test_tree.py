@@ -273,8 +273,9 @@ def test_direct_solve_of_whole_joints_is_a_newton_step_the_sweeps_agree_with(flo
     assert np.asarray(rows.on).sum(axis=0).tolist() == [8, 8, 0, 8, 0, 0]
     assert np.asarray(rows.spring_on).sum(axis=1).tolist() == [[8, 0, 0], [4, 0, 0], [8, 0, 0]]
     gaps = []
+    direct_step = jax.jit(tree.direct_step)  # compiled once for the three solves
     for _ in range(3):
-        dx, dtheta, increments, _ = tree.direct_step(model, table, None, multipliers, targets)
+        dx, dtheta, increments, _ = direct_step(model, table, None, multipliers, targets)
         table = table._replace(dx=table.dx + dx, dtheta=table.dtheta + dtheta)
         multipliers = multipliers + increments
         gaps.append(float(jnp.max(jnp.abs(tree.point_gaps(model, table)[0]))))
@@ -333,7 +334,6 @@ def test_tree_solve_lands_the_ant_as_many_sweeps_do():
         assert abs(height - reference_height) < 0.03
 
 
-@pytest.mark.slow  # about 2 minutes on 2 cores (the float64 grad of the ant's whole-joint solve compiles slowly)
 def driven_arm(kinds, max_torque=1e4, damping=100.0, **finalize):
     """A horizontal arm of 0.5 m, 2 kg links from the world, each joint of `kinds` ("hinge",
     "ball", "universal") driven toward its build pose with stiffness 2000 N m/rad."""
@@ -420,13 +420,19 @@ def test_gradients_through_a_saturated_drive_beside_an_unlimited_one_match_finit
         return final.pos[1, 2]
 
     targets = jnp.array([0.1, -0.2])
-    gradient = np.asarray(jax.grad(height)(targets))
+    height_and_gradient = jax.jit(jax.value_and_grad(height))  # one program for the gradient and the differences
+    gradient = np.asarray(height_and_gradient(targets)[1])
     step = 1e-6
-    central = np.array([(height(targets + step * e) - height(targets - step * e)) / (2 * step) for e in np.eye(2)])
+
+    def value(t):
+        return float(height_and_gradient(t)[0])
+
+    central = np.array([(value(targets + step * e) - value(targets - step * e)) / (2 * step) for e in np.eye(2)])
     assert np.all(np.isfinite(gradient))
     np.testing.assert_allclose(gradient, central, rtol=1e-5, atol=1e-8)
 
 
+@pytest.mark.slow  # 3.3 minutes alone and 5 GB (the float64 grad of the ant's whole-joint solve compiles slowly)
 def test_gradients_through_tree_solve_match_finite_differences(float64):
     # Brax's ant in the air with tree_solve (its whole joints in the last direct solve: locks, rotors,
     # the ankles' active soft limits): d(torso height after 5 steps) / d(controls), against central

@@ -4,6 +4,7 @@ pull, and keep their gradients finite and right."""
 
 import dataclasses
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -12,7 +13,10 @@ import pytest
 
 import dbdjax as dbd
 from dbdjax import collision, integrator, ragdoll
+from dbdjax.envs import ragdoll_envs
 from dbdjax.solvers import dbd as dbd_solver
+
+ASSETS = Path(__file__).parent / "assets"
 
 GRAVITY = 9.81
 
@@ -146,12 +150,34 @@ def test_gradients_through_sliding_and_sticking_contact_rows_match_finite_differ
         return jnp.dot(final.pos[1], jnp.asarray(downhill))
 
     speed = 0.8
-    gradient = float(jax.jit(jax.grad(travel))(speed))
+    travel_and_gradient = jax.jit(jax.value_and_grad(travel))  # one program for the gradient and the differences
+    gradient = float(travel_and_gradient(speed)[1])
     step = 1e-5
-    numeric = float((travel(speed + step) - travel(speed - step)) / (2 * step))
+    numeric = float((travel_and_gradient(speed + step)[0] - travel_and_gradient(speed - step)[0]) / (2 * step))
     print(f"\nd travel / d speed: {gradient:.8f}, central differences {numeric:.8f}")
     assert np.isfinite(gradient)
     assert abs(gradient - numeric) < 1e-5 * max(1.0, abs(numeric))
+
+
+@pytest.mark.xfail(strict=True, reason="known bug (session 28): a sliding point's tilted normal row blows the leg up")
+def test_tree_solve_keeps_a_quiet_standing_doll_quiet_when_one_foot_point_slides():
+    # A state of RagdollStand-v0 at 2 substeps x 2 iterations with tree_solve (dt 1/60 s), met by a
+    # PPO policy 179 steps into an episode, no push: every body slower than 0.22 m/s, both feet
+    # down. Two physics steps later the left leg moves at 12-40 m/s (4 x 8 sweeps: 0.24 m/s at most;
+    # with no point taken as sliding, the tree solve's bodies stay below 0.25 m/s). One point of the
+    # left foot slides in the second solve of a substep: its normal row pushes along
+    # J_n + mu s J_t, and from there the leg gains speed tenfold per step. Strict: when the solve is
+    # fixed, this test passes and the mark must go.
+    model = ragdoll_envs.RagdollStand(substeps=2, iterations=2, tree_solve=True).model
+    saved = np.load(ASSETS / "ragdoll_tree_solve_sliding_blowup.npz")
+    treedef = jax.tree.structure(dbd.init(model))
+    state = jax.tree.unflatten(treedef, [jnp.asarray(saved[f"state_{i}"]) for i in range(treedef.num_leaves)])
+    control = jnp.asarray(saved["control"])
+    assert float(jnp.max(jnp.linalg.norm(state.vel, axis=-1))) < 0.22
+    final, _ = jax.jit(lambda s: dbd.rollout(model, s, jnp.broadcast_to(control, (2, control.shape[0]))))(state)
+    speed = float(jnp.max(jnp.linalg.norm(final.vel, axis=-1)))
+    print(f"\nlargest body speed after two steps: {speed:.3f} m/s")
+    assert speed < 1.0
 
 
 def test_settle_lets_a_pulling_point_go_and_slides_a_point_past_its_cone():
