@@ -159,15 +159,14 @@ def test_gradients_through_sliding_and_sticking_contact_rows_match_finite_differ
     assert abs(gradient - numeric) < 1e-5 * max(1.0, abs(numeric))
 
 
-@pytest.mark.xfail(strict=True, reason="known bug (session 28): a sliding point's tilted normal row blows the leg up")
 def test_tree_solve_keeps_a_quiet_standing_doll_quiet_when_one_foot_point_slides():
     # A state of RagdollStand-v0 at 2 substeps x 2 iterations with tree_solve (dt 1/60 s), met by a
     # PPO policy 179 steps into an episode, no push: every body slower than 0.22 m/s, both feet
-    # down. Two physics steps later the left leg moves at 12-40 m/s (4 x 8 sweeps: 0.24 m/s at most;
-    # with no point taken as sliding, the tree solve's bodies stay below 0.25 m/s). One point of the
-    # left foot slides in the second solve of a substep: its normal row pushes along
-    # J_n + mu s J_t, and from there the leg gains speed tenfold per step. Strict: when the solve is
-    # fixed, this test passes and the mark must go.
+    # down. One point of the left foot slides in the second solve of a substep: its normal row
+    # pushes along J_n + mu s J_t, and with the foot held by the rows around it the solve is in
+    # Painleve's case (its lambda_n went from 0.0098 to -0.285). Until session 29 the left leg
+    # then moved at 12-40 m/s two steps later (4 x 8 sweeps: 0.24 m/s at most); now that solve
+    # jams (`tree_contacts.jammed`) and the largest speed is 0.243 m/s.
     model = ragdoll_envs.RagdollStand(substeps=2, iterations=2, tree_solve=True).model
     saved = np.load(ASSETS / "ragdoll_tree_solve_sliding_blowup.npz")
     state = dataclasses.replace(

@@ -547,6 +547,44 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
     return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
 
 
+def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.ndarray
+                              ) -> tuple[jnp.ndarray, jnp.ndarray]:  # fmt: skip
+    """The factored system solved for one right-hand side: each slot's rows' gaps (L, W, R) and
+    what is added to each body's z before the children's, start (N + 1, 6). Returns the step x
+    (N + 1, 6) and each slot's multiplier step (L, W, R)."""
+    rows = factors.matrices.shape[-2]
+
+    def eliminate(z, level):
+        index, packed, inverse, c = level  # z: (N + 1, 6), what the children added so far
+        jc, jp = packed[..., :6], packed[..., 6:12]
+        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
+        z_body = z[index[:, 0]]
+        z_joint = -c - _mv(_mm(jc, d_inv), z_body)
+        z = z.at[index[:, 1]].add(_mv(_mm(_transpose(jp), s_inv), z_joint))
+        return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
+
+    _, right = jax.lax.scan(eliminate, start, (factors.indices, factors.matrices, factors.inverses, gap))
+
+    def substitute(x, level):
+        index, packed, inverse, z = level
+        jc, jp = packed[..., :6], packed[..., 6:12]
+        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
+        kappa = _mv(s_inv, z[:, 6:] - _mv(jp, x[index[:, 1]]))
+        x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _mv(_transpose(jc), kappa)))
+        return x, kappa
+
+    return jax.lax.scan(
+        substitute, jnp.zeros_like(start), (factors.indices, factors.matrices, factors.inverses, right), reverse=True
+    )
+
+
+def responses(factors: Factors, loads: jnp.ndarray) -> jnp.ndarray:
+    """(K, N + 1, 6) the step (dx, dtheta) of every body under each of K loads (K, N + 1, 6) (force,
+    torque on each body) with every row's gap at zero: A^-1 load, A the system `factors` eliminated."""
+    gap = jnp.zeros(factors.matrices.shape[:-1], loads.dtype)
+    return jax.vmap(lambda load: _eliminate_and_substitute(factors, gap, load)[0])(loads)
+
+
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
           angular: AngularRows | None = None, contact: tree_contacts.ContactRows | None = None):  # fmt: skip
     """The exact step of the linearised point constraints of the joint tree from where `bodies` are.
@@ -574,32 +612,10 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
         delta = jnp.concatenate([delta, angular.residual], axis=-1)  # (J, R)
     gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, R)
 
-    def eliminate(z, level):
-        index, packed, inverse, c = level  # z: (N + 1, 6), what the children added so far
-        jc, jp = packed[..., :6], packed[..., 6:12]
-        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
-        z_body = z[index[:, 0]]
-        z_joint = -c - _mv(_mm(jc, d_inv), z_body)
-        z = z.at[index[:, 1]].add(_mv(_mm(_transpose(jp), s_inv), z_joint))
-        return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
-
     start = jnp.zeros((world + 1, 6), dtype)
     if contact is not None:  # a contact row's child is the world: z_j = -r, added to its body's z
         start = tree_contacts.added_right_sides(contact, world)
-    _, right = jax.lax.scan(eliminate, start, (factors.indices, factors.matrices, factors.inverses, gap))
-
-    def substitute(x, level):
-        index, packed, inverse, z = level
-        jc, jp = packed[..., :6], packed[..., 6:12]
-        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
-        kappa = _mv(s_inv, z[:, 6:] - _mv(jp, x[index[:, 1]]))
-        x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _mv(_transpose(jc), kappa)))
-        return x, kappa
-
-    x, kappa_slots = jax.lax.scan(
-        substitute, jnp.zeros((world + 1, 6), dtype), (factors.indices, factors.matrices, factors.inverses, right),
-        reverse=True,
-    )  # fmt: skip
+    x, kappa_slots = _eliminate_and_substitute(factors, gap, start)
     # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
     tree_joint = np.where(factors.empty, num_joints, factors.joint)
     kappa = jnp.zeros((num_joints + 1, rows), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
@@ -628,6 +644,7 @@ class _Solved(NamedTuple):
     angular: AngularRows | None
     contact: tree_contacts.ContactRows | None
     contact_steps: jnp.ndarray | None  # (R_c,)
+    factors: Factors
 
 
 def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, saturated=None,
@@ -647,7 +664,21 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     if angular is not None:
         increments = angular_increments(structure, angular, kappa[:, 3:])
     increments = increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3])
-    return _Solved(dx, dtheta, increments, angular, contact, contact_steps)
+    return _Solved(dx, dtheta, increments, angular, contact, contact_steps, factors)
+
+
+def _tilts_jam(structure: Structure, solved: _Solved) -> jnp.ndarray:
+    """() bool: whether the tilts of `solved`'s sliding contact points made it ill-posed
+    (`tree_contacts.jammed`). A decision only: no gradient flows through it."""
+    stop = jax.lax.stop_gradient
+    contact, factors = solved.contact, solved.factors
+    contact = contact._replace(
+        jacobian=stop(contact.jacobian), push=stop(contact.push), compliance=stop(contact.compliance)
+    )
+    factors = factors._replace(matrices=stop(factors.matrices), inverses=stop(factors.inverses))
+    index, count = tree_contacts.tilted(contact)
+    tilts = tree_contacts.tilts(contact, index, structure.num_bodies)
+    return tree_contacts.jammed(contact, index, count, responses(factors, tilts))
 
 
 def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching | None = None,
@@ -669,7 +700,9 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     past its limit is held at the limit's torque (without it, one sweep of a torque-limited arm
     followed by the solve held the arm up with 2.5 times the limit; a drive the sweeps left at its
     limit is out from the start). Each such row's new multiplier step is applied to its bodies as
-    a load and the solve is taken again from there without it.
+    a load and the solve is taken again from there without it. A solve whose sliding points'
+    tilted rows make it ill-posed (`tree_contacts.jammed`, Painleve's case) is not kept: a first
+    solve is taken again with every point sticking, a second gives way to the first.
     """
     structure = model.structure
     first = _solve_once(model, bodies, touching, multipliers, targets)
@@ -690,6 +723,10 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     if touching is not None:
         settled = tree_contacts.settle(touching, first.contact, first.contact_steps,
                                jnp.concatenate([first.dx, first.dtheta], axis=-1))  # fmt: skip
+        # A first solve the sliding points' tilts made ill-posed is taken again with every point
+        # sticking, and that is the step (its active set unsettled).
+        first_jammed = _tilts_jam(structure, first)
+        settled = jax.tree.map(lambda a, b: jnp.where(first_jammed, a, b), tree_contacts.sticking(settled), settled)
         changed = changed | settled.changed
 
     def again(_):
@@ -719,9 +756,13 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         contacts = ()
         if touching is not None:
             contacts = tree_contacts.increments(touching, second.contact_steps + settled.load)
-        return (second.dx + dx_load, second.dtheta + dtheta_load, second.increments.at[:, _DRIVE].add(drive_load),
-                contacts)  # fmt: skip
+        result = (second.dx + dx_load, second.dtheta + dtheta_load, second.increments.at[:, _DRIVE].add(drive_load),
+                  contacts)  # fmt: skip
+        if touching is None:
+            return result
+        jammed = _tilts_jam(structure, second)
+        return jax.tree.map(lambda a, b: jnp.where(jammed, a, b), unchanged, result)
 
-    # Taken again only where a row changed (unbatched; under vmap both run, as a select).
     unchanged = (first.dx, first.dtheta, first.increments, contact_increments)
+    # Taken again only where a row changed (unbatched; under vmap both run, as a select).
     return jax.lax.cond(changed, again, lambda _: unchanged, None)
