@@ -7,6 +7,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 SCRIPT = textwrap.dedent(
     """
     import jax, jax.numpy as jnp, numpy as np
@@ -95,6 +97,7 @@ def test_batched_rollout_sharded_over_four_cpu_devices_matches_one_device():
     assert lines["uneven"] == "True"  # a batch of 6 over 4 devices is refused with a clear error
 
 
+@pytest.mark.slow  # 124 s; the sharded rollouts above stay in CI
 def test_trainers_split_their_envs_over_two_cpu_devices_and_learn_what_one_device_learns():
     """PPO's iteration on two devices keeps its envs split there and updates the networks as on
     one (the same random numbers: JAX's partitionable threefry); the evaluation's episodes split

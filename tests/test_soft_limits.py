@@ -156,7 +156,7 @@ def test_a_hinge_turned_past_pi_beyond_its_bound_is_pushed_back_to_that_bound(fl
     assert past[0] > -0.3 and np.all(np.diff(past) > 0.0)
 
 
-@pytest.mark.parametrize("name", ["humanoid", "ant"])
+@pytest.mark.parametrize("name", [pytest.param("humanoid", marks=pytest.mark.slow), "ant"])  # humanoid: 60 s
 def test_mjcf_model_built_past_its_limits_starts_no_faster_than_mujoco(name):
     # Brax's humanoid starts with its knees 2 degrees outside their range, the ant with its ankles
     # 30 degrees outside. Rigid limits snapped them back within the first step: the largest angular

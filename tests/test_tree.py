@@ -273,10 +273,9 @@ def test_direct_solve_of_whole_joints_is_a_newton_step_the_sweeps_agree_with(flo
     assert np.asarray(rows.on).sum(axis=0).tolist() == [8, 8, 0, 8, 0, 0]
     assert np.asarray(rows.spring_on).sum(axis=1).tolist() == [[8, 0, 0], [4, 0, 0], [8, 0, 0]]
     gaps = []
-    # Op by op (2 minutes): jitted here under float64's `jax.enable_x64` context, the solve left a
-    # 64-bit index behind that the float32 ant in the next test tripped over (session 28).
+    direct_step = jax.jit(tree.direct_step)  # compiled once for the three solves
     for _ in range(3):
-        dx, dtheta, increments, _ = tree.direct_step(model, table, None, multipliers, targets)
+        dx, dtheta, increments, _ = direct_step(model, table, None, multipliers, targets)
         table = table._replace(dx=table.dx + dx, dtheta=table.dtheta + dtheta)
         multipliers = multipliers + increments
         gaps.append(float(jnp.max(jnp.abs(tree.point_gaps(model, table)[0]))))

@@ -50,6 +50,7 @@ def stacked_cubes(angle_degrees=0.0, friction=0.9, dynamic_friction=None, **fina
     return b.finalize(**finalize), 0.05 * normal, downhill
 
 
+@pytest.mark.slow  # 80 s; the stack on slopes below and above the friction angle stays in CI
 def test_tree_solve_contacts_carry_the_whole_weight_of_a_jointed_stack():
     # The hold that stood in for contact rows (session 24) took the upper cube's weight itself: the
     # contacts carried 9.82 N, the lower cube's alone. As rows they carry all 39.24 N.
@@ -96,6 +97,7 @@ def test_tree_solve_slides_a_jointed_stack_above_the_friction_angle_at_g_sin_min
     assert float(jnp.max(jnp.linalg.norm(trajectory.ang_vel[30:], axis=-1))) < 1e-3  # slides, does not tip
 
 
+@pytest.mark.slow  # 136 s; the quiet standing doll below stays in CI
 def test_tree_solve_holds_a_leaning_ragdoll_on_its_feet_with_its_weight_on_them():
     # The standing doll leaning forwards on its ankles (target -0.036 rad, ramped in over 1 s) at
     # 2 x 4. With the hold its feet carried 29 N of its weight, its heels rose and it toppled forwards

@@ -415,8 +415,10 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
     )
 
 
-_EULER_LOWER = joint_family.EULER_LOWER + np.arange(3)
-_EULER_UPPER = joint_family.EULER_UPPER + np.arange(3)
+# Slices, not index arrays: a numpy index traced once under `jax.enable_x64` left a 64-bit index
+# that a later float32 trace of the same model tripped over (session 28's test order).
+_EULER_LOWER = slice(joint_family.EULER_LOWER, joint_family.EULER_LOWER + 3)
+_EULER_UPPER = slice(joint_family.EULER_UPPER, joint_family.EULER_UPPER + 3)
 _DRIVE = slice(joint_family.DRIVE, joint_family.DRIVE + 3)
 
 
@@ -677,8 +679,14 @@ def _tilts_jam(structure: Structure, solved: _Solved) -> jnp.ndarray:
     )
     factors = factors._replace(matrices=stop(factors.matrices), inverses=stop(factors.inverses))
     index, count = tree_contacts.tilted(contact)
-    tilts = tree_contacts.tilts(contact, index, structure.num_bodies)
-    return tree_contacts.jammed(contact, index, count, responses(factors, tilts))
+
+    def measured(_):
+        tilts = tree_contacts.tilts(contact, index, structure.num_bodies)
+        return tree_contacts.jammed(contact, index, count, responses(factors, tilts))
+
+    # Without a sliding point nothing is tilted: the substitutions are skipped (unbatched; under
+    # vmap both branches run, as a select).
+    return jax.lax.cond(count > 0, measured, lambda _: jnp.zeros((), bool), None)
 
 
 def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching | None = None,
