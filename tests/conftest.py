@@ -25,7 +25,7 @@ def pytest_collection_modifyitems(items):
         for module in modules
         for name, value in vars(module).items()
         if callable(value)
-        and not name.startswith("test")
+        and not name.startswith(("test", "Test"))  # test functions and classes carry their marks
         and getattr(value, "__module__", None) == module.__name__
         and getattr(value, "pytestmark", None)
     ]

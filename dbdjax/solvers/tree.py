@@ -685,7 +685,8 @@ def _tilts_jam(structure: Structure, solved: _Solved) -> jnp.ndarray:
         return tree_contacts.jammed(contact, index, count, responses(factors, tilts))
 
     # Without a sliding point nothing is tilted: the substitutions are skipped (unbatched; under
-    # vmap both branches run, as a select).
+    # vmap both branches run, as a select). The quiet standing doll at 2 x 2: 1.10 ms a step, 1.55
+    # with the check always measured.
     return jax.lax.cond(count > 0, measured, lambda _: jnp.zeros((), bool), None)
 
 
