@@ -580,15 +580,9 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
     )
 
 
-def responses(factors: Factors, loads: jnp.ndarray) -> jnp.ndarray:
-    """(K, N + 1, 6) the step (dx, dtheta) of every body under each of K loads (K, N + 1, 6) (force,
-    torque on each body) with every row's gap at zero: A^-1 load, A the system `factors` eliminated."""
-    gap = jnp.zeros(factors.matrices.shape[:-1], loads.dtype)
-    return jax.vmap(lambda load: _eliminate_and_substitute(factors, gap, load)[0])(loads)
-
-
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
-          angular: AngularRows | None = None, contact: tree_contacts.ContactRows | None = None):  # fmt: skip
+          angular: AngularRows | None = None, contact: tree_contacts.ContactRows | None = None,
+          loads: jnp.ndarray | None = None):  # fmt: skip
     """The exact step of the linearised point constraints of the joint tree from where `bodies` are.
 
     factors: `factor` of the same model (at this configuration, or at one close to it: then the
@@ -601,6 +595,9 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     Returns dx (N + 1, 3) m and dtheta (N + 1, 3) rad to add (world row 0), kappa (J, R), the
     multiplier step of each joint's rows (a point's: the impulse on body a, -kappa on b; 0 outside
     the tree), and the contact rows' multiplier steps (R_c,) (None without `contact`).
+    loads: (K, N + 1, 6) loads (force, torque on each body) solved for in the same pass with every
+    row's gap at zero, or None; with them a fifth result: the steps A^-1 load (K, N + 1, 6), A the
+    system `factors` eliminated.
     """
     dtype = factors.inverses.dtype
     world, num_joints = model.structure.num_bodies, model.structure.num_joints
@@ -617,11 +614,22 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
     start = jnp.zeros((world + 1, 6), dtype)
     if contact is not None:  # a contact row's child is the world: z_j = -r, added to its body's z
         start = tree_contacts.added_right_sides(contact, world)
-    x, kappa_slots = _eliminate_and_substitute(factors, gap, start)
+    if loads is None:
+        x, kappa_slots = _eliminate_and_substitute(factors, gap, start)
+    else:
+        # One pass for all right-hand sides: on CPU a pass costs its kernels' launches far more
+        # than their arithmetic, so K more columns cost little beside K more passes.
+        xs, kappa_all = jax.vmap(lambda g, z: _eliminate_and_substitute(factors, g, z))(
+            jnp.concatenate([gap[None], jnp.zeros((len(loads),) + gap.shape, dtype)]),
+            jnp.concatenate([start[None], loads.astype(dtype)]),
+        )
+        x, kappa_slots = xs[0], kappa_all[0]
     # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
     tree_joint = np.where(factors.empty, num_joints, factors.joint)
     kappa = jnp.zeros((num_joints + 1, rows), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
     contact_steps = None if contact is None else tree_contacts.row_steps(contact, x)
+    if loads is not None:
+        return x[:, :3], x[:, 3:], kappa, contact_steps, xs[1:]
     return x[:, :3], x[:, 3:], kappa, contact_steps
 
 
@@ -647,6 +655,7 @@ class _Solved(NamedTuple):
     contact: tree_contacts.ContactRows | None
     contact_steps: jnp.ndarray | None  # (R_c,)
     factors: Factors
+    jammed: jnp.ndarray | None = None  # () bool: `tree_contacts.jammed` of its contact rows (None: no contacts)
 
 
 def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, saturated=None,
@@ -656,38 +665,29 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     points = point_gaps(model, bodies)
     angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets, saturated)
     point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
-    held = contact = None
+    held = contact = tilts = None
     if touching is not None:
         held = touching.held
         contact = tree_contacts.contact_rows(model, bodies, touching, forest(structure)[1], settled)
+        # Painleve's check (`tree_contacts.jammed`) needs the responses to the sliding points' tilts:
+        # they ride along the solve as more right-hand sides. Taken as separate passes, under a
+        # lax.cond that skipped them where nothing slides, they cost Brax's ant with random controls
+        # 24% (batch 1) and 27% (batch 16) of its step; riding along, 11% and 15% (session 31).
+        index, count = tree_contacts.tilted(contact)
+        tilts = jax.lax.stop_gradient(tree_contacts.tilts(contact, index, structure.num_bodies))
     factors = factor(model, bodies, held, points, angular, contact)
-    dx, dtheta, kappa, contact_steps = solve(model, factors, bodies, point_multipliers, points, angular, contact)
+    solved = solve(model, factors, bodies, point_multipliers, points, angular, contact, tilts)
+    dx, dtheta, kappa, contact_steps = solved[:4]
+    jammed = None
+    if tilts is not None:  # a decision only: no gradient flows through it
+        stop = jax.lax.stop_gradient
+        frozen = contact._replace(jacobian=stop(contact.jacobian), compliance=stop(contact.compliance))
+        jammed = tree_contacts.jammed(frozen, index, count, stop(solved[4]))
     increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
     if angular is not None:
         increments = angular_increments(structure, angular, kappa[:, 3:])
     increments = increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3])
-    return _Solved(dx, dtheta, increments, angular, contact, contact_steps, factors)
-
-
-def _tilts_jam(structure: Structure, solved: _Solved) -> jnp.ndarray:
-    """() bool: whether the tilts of `solved`'s sliding contact points made it ill-posed
-    (`tree_contacts.jammed`). A decision only: no gradient flows through it."""
-    stop = jax.lax.stop_gradient
-    contact, factors = solved.contact, solved.factors
-    contact = contact._replace(
-        jacobian=stop(contact.jacobian), push=stop(contact.push), compliance=stop(contact.compliance)
-    )
-    factors = factors._replace(matrices=stop(factors.matrices), inverses=stop(factors.inverses))
-    index, count = tree_contacts.tilted(contact)
-
-    def measured(_):
-        tilts = tree_contacts.tilts(contact, index, structure.num_bodies)
-        return tree_contacts.jammed(contact, index, count, responses(factors, tilts))
-
-    # Without a sliding point nothing is tilted: the substitutions are skipped (unbatched; under
-    # vmap both branches run, as a select). The quiet standing doll at 2 x 2: 1.10 ms a step, 1.55
-    # with the check always measured.
-    return jax.lax.cond(count > 0, measured, lambda _: jnp.zeros((), bool), None)
+    return _Solved(dx, dtheta, increments, angular, contact, contact_steps, factors, jammed)
 
 
 def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching | None = None,
@@ -734,7 +734,7 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
                                jnp.concatenate([first.dx, first.dtheta], axis=-1))  # fmt: skip
         # A first solve the sliding points' tilts made ill-posed is taken again with every point
         # sticking, and that is the step (its active set unsettled).
-        first_jammed = _tilts_jam(structure, first)
+        first_jammed = first.jammed
         settled = jax.tree.map(lambda a, b: jnp.where(first_jammed, a, b), tree_contacts.sticking(settled), settled)
         changed = changed | settled.changed
 
@@ -769,7 +769,7 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
                   contacts)  # fmt: skip
         if touching is None:
             return result
-        jammed = _tilts_jam(structure, second)
+        jammed = second.jammed
         return jax.tree.map(lambda a, b: jnp.where(jammed, a, b), unchanged, result)
 
     unchanged = (first.dx, first.dtheta, first.increments, contact_increments)

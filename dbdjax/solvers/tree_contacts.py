@@ -33,7 +33,7 @@ Painleve's case (`jammed`). A tilted row is not symmetric: with the other rows p
 into the floor faster than its normal row pushes it out, and the solve flips the sign of its
 lambda_n or multiplies it many times over (the standing ragdoll's foot at 2 x 2 went from 0.2 to
 40 m/s in two steps). Each solve with tilted rows measures how much the tilts change the points'
-normal responses (one more substitution of its factors per tilted point, at most TILTED); where
+normal responses (one more right-hand side of the solve per tilted point, at most TILTED); where
 they could more than double them or turn their sign, the point jams: sticking is the answer, as
 for a rigid body in Painleve's paradox. A jammed first solve is taken again with every point
 sticking; a jammed second solve gives way to the first.
