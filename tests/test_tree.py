@@ -334,6 +334,18 @@ def test_tree_solve_lands_the_ant_as_many_sweeps_do():
         assert abs(height - reference_height) < 0.03
 
 
+def test_tree_solve_closes_what_its_linearisation_leaves_of_the_landing_ants_joints():
+    # Brax's ant dropped at its dt = 0.01, one substep and one sweep (the benchmark's dbd-tree-1):
+    # at landing (step 29) the sweep's solve turns its legs 0.089 rad and the whole solve 0.088 rad
+    # back, each leaving the second order of that turn: 1.0 mm of joint gap without the chord step
+    # that ends the whole solve (`tree._closing_step`), 0.046 mm with it (session 31).
+    model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=1, iterations=1, tree_solve=True)
+    _, trajectory = jax.jit(lambda s: dbd.rollout(model, s, steps=40))(dbd.init(model))
+    gaps = np.asarray(jax.vmap(lambda s: jnp.max(dbd.diagnostics.joint_gaps(model, s)))(trajectory))
+    assert trajectory.pos[-1, 0, 2] < 0.4  # it has landed (0.75 m at the start)
+    assert gaps.max() < 0.2e-3, gaps.max()
+
+
 def driven_arm(kinds, max_torque=1e4, damping=100.0, **finalize):
     """A horizontal arm of 0.5 m, 2 kg links from the world, each joint of `kinds` ("hinge",
     "ball", "universal") driven toward its build pose with stiffness 2000 N m/rad."""

@@ -690,8 +690,35 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     return _Solved(dx, dtheta, increments, angular, contact, contact_steps, factors, jammed)
 
 
+def _closing_step(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray
+                  ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
+    """A chord step on what a solve's linearisation left of the joints' point gaps at `bodies`
+    (after the step): the factors of that solve, the points' gaps (DBD (53)-(54), plus alpha
+    lambda, (47)) measured again, every other row's error held where it is. Returns (dx, dtheta)
+    (N + 1, 3) to add and the joints' point multiplier steps (J, 3).
+
+    Why. A solve is one Newton step: it leaves of each gap the second order of its rotation (a
+    leg turned by theta leaves about theta^2 / 2 of its length). Brax's ant landing at dt = 0.01
+    with one sweep (dbd-tree-1): the sweep's solve turned its legs 0.089 rad, leaving 0.91 mm of
+    its 10 mm; the whole solve turned them back 0.088 rad (the armature and limits it adds), and
+    left 0.76 mm. The chord step reuses that solve's factors (no new factor, one more pass), so
+    the gaps it leaves are of the order of the step times how far the Jacobians moved. The other
+    rows (angular, contacts) are asked to stay put to first order, and their multipliers take no
+    step: the correction is of the size of the gaps it closes."""
+    world, num_joints = model.structure.num_bodies, model.structure.num_joints
+    delta, _, _ = point_gaps(model, bodies)
+    delta = delta + model.joints.regularization[:, None] * multipliers[:, joint_family.POINT : joint_family.POINT + 3]
+    rows = factors.matrices.shape[-2]
+    delta = jnp.concatenate([delta, jnp.zeros((num_joints, rows - 3), delta.dtype)], axis=-1)
+    gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, R)
+    x, kappa_slots = _eliminate_and_substitute(factors, gap, jnp.zeros((world + 1, 6), delta.dtype))
+    tree_joint = np.where(factors.empty, num_joints, factors.joint)
+    kappa = jnp.zeros((num_joints + 1, rows), delta.dtype).at[tree_joint].add(kappa_slots)[:num_joints]
+    return x[:, :3], x[:, 3:], kappa[:, :3]
+
+
 def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching | None = None,
-                multipliers: jnp.ndarray | None = None, targets: tuple | None = None,
+                multipliers: jnp.ndarray | None = None, targets: tuple | None = None, close: bool = False,
                 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, tuple]:  # fmt: skip
     """`factor` and `solve` at the configuration of `bodies`, its joints measured once: (dx, dtheta)
     (N + 1, 3) to add, the joints' multiplier steps (J, joints.NUM_MULTIPLIERS) and the contact
@@ -701,7 +728,8 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     between two moving bodies held along their normals; None: no contacts.
     multipliers: (J, joints.NUM_MULTIPLIERS) so far this substep (None: zero). targets: (the
     substep's `joints.Targets`, h) to solve the joints' rotation locks, rotors, angle limits and
-    drives with their points (`angular_rows`), or None for the points alone.
+    drives with their points (`angular_rows`), or None for the points alone. close: end with a
+    chord step on what the solve's linearisation left of the joints' point gaps (`_closing_step`).
 
     Inequalities by one step of an active set. A contact point the solve would have pull lets go,
     and one whose friction would leave its cone slides on it (`tree_contacts.settle`). A drive with
@@ -714,12 +742,24 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     solve is taken again with every point sticking, a second gives way to the first.
     """
     structure = model.structure
+    lam_joints = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), bodies.dx.dtype)
+    lam_joints = lam_joints if multipliers is None else multipliers
+
+    def closed(result, factors):
+        if not close:
+            return result
+        dx, dtheta, increments, contacts = result
+        after = bodies._replace(dx=bodies.dx + dx, dtheta=bodies.dtheta + dtheta)
+        chord_dx, chord_dtheta, chord_kappa = _closing_step(model, factors, after, lam_joints + increments)
+        point = slice(joint_family.POINT, joint_family.POINT + 3)
+        return dx + chord_dx, dtheta + chord_dtheta, increments.at[:, point].add(chord_kappa), contacts
+
     first = _solve_once(model, bodies, touching, multipliers, targets)
     contact_increments = () if touching is None else tree_contacts.increments(touching, first.contact_steps)
     lam = jnp.zeros_like(first.increments) if multipliers is None else multipliers
     limited = first.angular is not None and _row_groups(structure).drives and structure.joint_drive_limited.array.any()
     if not limited and touching is None:
-        return first.dx, first.dtheta, first.increments, contact_increments
+        return closed((first.dx, first.dtheta, first.increments, contact_increments), first.factors)
 
     saturated = changed = jnp.zeros((), bool)
     settled = None
@@ -768,10 +808,10 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         result = (second.dx + dx_load, second.dtheta + dtheta_load, second.increments.at[:, _DRIVE].add(drive_load),
                   contacts)  # fmt: skip
         if touching is None:
-            return result
+            return closed(result, second.factors)
         jammed = second.jammed
-        return jax.tree.map(lambda a, b: jnp.where(jammed, a, b), unchanged, result)
+        return jax.tree.map(lambda a, b: jnp.where(jammed, a, b), unchanged, closed(result, second.factors))
 
-    unchanged = (first.dx, first.dtheta, first.increments, contact_increments)
+    unchanged = closed((first.dx, first.dtheta, first.increments, contact_increments), first.factors)
     # Taken again only where a row changed (unbatched; under vmap both run, as a select).
     return jax.lax.cond(changed, again, lambda _: unchanged, None)
