@@ -549,6 +549,17 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
     return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
 
 
+def _slot_rows(factors: Factors, rows: jnp.ndarray) -> jnp.ndarray:
+    """(L, W, R) each level slot's part of a per-joint row array (J, R) (0 in empty slots)."""
+    return jnp.where(factors.empty[..., None], 0.0, rows[factors.joint])
+
+
+def _joint_rows(factors: Factors, slots: jnp.ndarray, num_joints: int) -> jnp.ndarray:
+    """(J, R) a per-slot row array (L, W, R) gathered back to the joints (0 outside the tree)."""
+    tree_joint = np.where(factors.empty, num_joints, factors.joint)
+    return jnp.zeros((num_joints + 1,) + slots.shape[2:], slots.dtype).at[tree_joint].add(slots)[:num_joints]
+
+
 def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.ndarray
                               ) -> tuple[jnp.ndarray, jnp.ndarray]:  # fmt: skip
     """The factored system solved for one right-hand side: each slot's rows' gaps (L, W, R) and
@@ -609,7 +620,7 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
         raise ValueError("tree.solve: angular rows must be those the factors were built with")
     if angular is not None:
         delta = jnp.concatenate([delta, angular.residual], axis=-1)  # (J, R)
-    gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, R)
+    gap = _slot_rows(factors, delta)  # (L, W, R)
 
     start = jnp.zeros((world + 1, 6), dtype)
     if contact is not None:  # a contact row's child is the world: z_j = -r, added to its body's z
@@ -625,8 +636,7 @@ def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndar
         )
         x, kappa_slots = xs[0], kappa_all[0]
     # c = p_a - p_b whichever side is the child, so kappa is the impulse on body a (-kappa on b).
-    tree_joint = np.where(factors.empty, num_joints, factors.joint)
-    kappa = jnp.zeros((num_joints + 1, rows), dtype).at[tree_joint].add(kappa_slots)[:num_joints]
+    kappa = _joint_rows(factors, kappa_slots, num_joints)
     contact_steps = None if contact is None else tree_contacts.row_steps(contact, x)
     if loads is not None:
         return x[:, :3], x[:, 3:], kappa, contact_steps, xs[1:]
@@ -710,10 +720,9 @@ def _closing_step(model: Model, factors: Factors, bodies: BodySet, multipliers: 
     delta = delta + model.joints.regularization[:, None] * multipliers[:, joint_family.POINT : joint_family.POINT + 3]
     rows = factors.matrices.shape[-2]
     delta = jnp.concatenate([delta, jnp.zeros((num_joints, rows - 3), delta.dtype)], axis=-1)
-    gap = jnp.where(factors.empty[..., None], 0.0, delta[factors.joint])  # (L, W, R)
+    gap = _slot_rows(factors, delta)  # (L, W, R)
     x, kappa_slots = _eliminate_and_substitute(factors, gap, jnp.zeros((world + 1, 6), delta.dtype))
-    tree_joint = np.where(factors.empty, num_joints, factors.joint)
-    kappa = jnp.zeros((num_joints + 1, rows), delta.dtype).at[tree_joint].add(kappa_slots)[:num_joints]
+    kappa = _joint_rows(factors, kappa_slots, num_joints)
     return x[:, :3], x[:, 3:], kappa[:, :3]
 
 
