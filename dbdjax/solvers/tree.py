@@ -36,7 +36,9 @@ through their limits, which the sweeps then fought (Brax's ant sank to 0.18 m), 
 sweeps' drives had held (a driven arm sagged 0.61 rad). Those rows stay out of the solves inside
 the sweeps: there the sweeps' soft limits let go of what a solve had pushed past a bound and the
 ant blew up within 4 steps. Rigid limits stay with the sweeps: in the solve they made the standing
-ragdoll, its knees on their limits, creep up and fall within 10 s.
+ragdoll, its knees on their limits, creep up and fall within 10 s. That last solve ends with a
+chord step on the joints' points (`_closing_step`): its own factors, the gaps measured again where it
+left the bodies (one solve leaves the second order of its turn: 1.0 mm on the landing ant).
 The contacts of a tree body with the world are rows of every direct solve (solvers/tree_contacts.py:
 each adds to its one body's block, as a joint to the fixed world would), unilateral and within the
 friction cone by one active-set step with the drives' torque limits (`direct_step`); without them a
