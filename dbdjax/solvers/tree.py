@@ -753,21 +753,22 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     solve is taken again with every point sticking, a second gives way to the first.
     """
     structure = model.structure
-    lam_joints = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), bodies.dx.dtype)
-    lam_joints = lam_joints if multipliers is None else multipliers
+    first = _solve_once(model, bodies, touching, multipliers, targets)
+    contact_increments = () if touching is None else tree_contacts.increments(touching, first.contact_steps)
+    lam = jnp.zeros_like(first.increments) if multipliers is None else multipliers
+
+    def chord_factors(factors):  # what the closing step needs of a solve's factors (none without it)
+        return (factors.matrices, factors.inverses) if close else ()
 
     def closed(result, factors):
         if not close:
             return result
         dx, dtheta, increments, contacts = result
         after = bodies._replace(dx=bodies.dx + dx, dtheta=bodies.dtheta + dtheta)
-        chord_dx, chord_dtheta, chord_kappa = _closing_step(model, factors, after, lam_joints + increments)
+        chord_dx, chord_dtheta, chord_kappa = _closing_step(model, factors, after, lam + increments)
         point = slice(joint_family.POINT, joint_family.POINT + 3)
         return dx + chord_dx, dtheta + chord_dtheta, increments.at[:, point].add(chord_kappa), contacts
 
-    first = _solve_once(model, bodies, touching, multipliers, targets)
-    contact_increments = () if touching is None else tree_contacts.increments(touching, first.contact_steps)
-    lam = jnp.zeros_like(first.increments) if multipliers is None else multipliers
     limited = first.angular is not None and _row_groups(structure).drives and structure.joint_drive_limited.array.any()
     if not limited and touching is None:
         return closed((first.dx, first.dtheta, first.increments, contact_increments), first.factors)
@@ -818,11 +819,17 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
             contacts = tree_contacts.increments(touching, second.contact_steps + settled.load)
         result = (second.dx + dx_load, second.dtheta + dtheta_load, second.increments.at[:, _DRIVE].add(drive_load),
                   contacts)  # fmt: skip
+        kept = (result, *chord_factors(second.factors))
         if touching is None:
-            return closed(result, second.factors)
+            return kept
         jammed = second.jammed
-        return jax.tree.map(lambda a, b: jnp.where(jammed, a, b), unchanged, closed(result, second.factors))
+        return jax.tree.map(lambda a, b: jnp.where(jammed, a, b), unchanged, kept)
 
-    unchanged = closed((first.dx, first.dtheta, first.increments, contact_increments), first.factors)
-    # Taken again only where a row changed (unbatched; under vmap both run, as a select).
-    return jax.lax.cond(changed, again, lambda _: unchanged, None)
+    unchanged = ((first.dx, first.dtheta, first.increments, contact_increments), *chord_factors(first.factors))
+    # Taken again only where a row changed (unbatched; under vmap both run, as a select). With
+    # `close`, the kept solve's factors come out too, so the closing step runs once, after.
+    result, *kept_factors = jax.lax.cond(changed, again, lambda _: unchanged, None)
+    if not close:
+        return result
+    matrices, inverses = kept_factors
+    return closed(result, first.factors._replace(matrices=matrices, inverses=inverses))
