@@ -346,6 +346,21 @@ def test_tree_solve_closes_what_its_linearisation_leaves_of_the_landing_ants_joi
     assert gaps.max() < 0.2e-3, gaps.max()
 
 
+def test_tree_solve_takes_its_second_solve_where_the_first_was_when_landing_feet_let_go():
+    # Brax's ant with random controls (dbd-tree-1) one step after a foot touched down (session 32,
+    # ant 13 of 16 of `brax_comparison.random_controls`-like controls, step 24): in the whole solve
+    # two feet would pull and let go, one slides and one comes in. Their loads moved the bodies
+    # first (the legs 0.2-1 rad) and the second solve was linearised there: the step left 0.61 mm of
+    # joint gap. Linearised where the first solve was, with the loads on its right-hand side: 0.0069 mm.
+    model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=1, iterations=1, tree_solve=True)
+    saved = np.load(ASSETS / "ant_landing_two_feet_let_go.npz")
+    state = dbd.State(**{name: jnp.asarray(saved[name]) for name in ("pos", "quat", "vel", "ang_vel")})
+    after = jax.jit(lambda s, c: dbd.step(model, s, c))(state, jnp.asarray(saved["control"]))
+    gap = float(jnp.max(dbd.diagnostics.joint_gaps(model, after)))
+    assert np.isfinite(np.asarray(after.vel)).all()
+    assert gap < 0.05e-3, gap
+
+
 def driven_arm(kinds, max_torque=1e4, damping=100.0, **finalize):
     """A horizontal arm of 0.5 m, 2 kg links from the world, each joint of `kinds` ("hinge",
     "ball", "universal") driven toward its build pose with stiffness 2000 N m/rad."""

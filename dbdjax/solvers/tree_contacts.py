@@ -26,7 +26,7 @@ lambda_n as lambda_n changes. After the solve: a point whose total lambda_n woul
 (lambda_n and its friction to 0); a sticking point whose friction leaves its cone, or every sticking
 point of a pair whose friction in all exceeds the sum of its points' cones, slides (its friction on
 the cone of its lambda_n so far); a point that was out and that the solve takes into the floor
-comes in. Each change is applied to its body as a load and the solve is taken again from there.
+comes in. Each change is a load on its body, and the solve is taken again with it (`tree.direct_step`).
 
 Painleve's case (`jammed`). A tilted row is not symmetric: with the other rows pinning its body
 (a foot held by its other points and the leg's joints), a sliding point's friction can drive it
@@ -291,7 +291,8 @@ def jammed(rows: ContactRows, index: jnp.ndarray, count: jnp.ndarray, response: 
     A^-1 u (TILTED, N + 1, 6) to each tilted point's tilt (`tilted`, `tilts`).
     Q[i, k] = J_n,i A^-1 u_k / alpha_i says how far point k's tilt moves point i along its normal, in
     units of its row; by Woodbury, the points' normal responses with the tilts are (1 - Q) times
-    those without them. Jammed: a point whose row of Q sums to 1 or more in magnitude. Below that
+    those without them (A the tilted system, as the solve factored it: with Q_0 the same measured
+    on the untilted one, 1 - Q = (1 + Q_0)^-1, so one solve gives both). Jammed: a point whose row of Q sums to 1 or more in magnitude. Below that
     every eigenvalue of 1 - Q lies in the right half-plane within 2 of 0 (Gershgorin): the tilts at
     most double the normal responses and never turn their sign. Above it, Painleve's case: a
     friction that drives its point into the floor (the standing ragdoll's foot, one point pinned by
