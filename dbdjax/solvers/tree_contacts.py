@@ -292,11 +292,12 @@ def jammed(rows: ContactRows, index: jnp.ndarray, count: jnp.ndarray, response: 
     Q[i, k] = J_n,i A^-1 u_k / alpha_i says how far point k's tilt moves point i along its normal, in
     units of its row; by Woodbury, the points' normal responses with the tilts are (1 - Q) times
     those without them (A the tilted system, as the solve factored it: with Q_0 the same measured
-    on the untilted one, 1 - Q = (1 + Q_0)^-1, so one solve gives both). Jammed: a point whose row of Q sums to 1 or more in magnitude. Below that
-    every eigenvalue of 1 - Q lies in the right half-plane within 2 of 0 (Gershgorin): the tilts at
-    most double the normal responses and never turn their sign. Above it, Painleve's case: a
-    friction that drives its point into the floor (the standing ragdoll's foot, one point pinned by
-    its neighbours, went to 40 m/s in two steps). More than TILTED sliding points: jammed too."""
+    on the untilted one, 1 - Q = (1 + Q_0)^-1, so one solve gives both). Jammed: a point whose row
+    of Q sums to 1 or more in magnitude. Below that every eigenvalue of 1 - Q lies in the right
+    half-plane within 2 of 0 (Gershgorin): the tilts at most double the normal responses and never
+    turn their sign. Above it, Painleve's case: a friction that drives its point into the floor (the
+    standing ragdoll's foot, one point pinned by its neighbours, went to 40 m/s in two steps). More
+    than TILTED sliding points: jammed too."""
     real = index < len(rows.body) // 3
     safe = jnp.where(real, index, 0)
     jacobian, compliance = rows.jacobian[::3][safe], rows.compliance[::3][safe]
