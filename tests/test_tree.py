@@ -363,6 +363,22 @@ def test_tree_solve_takes_its_second_solve_where_the_first_was_when_landing_feet
     assert gap < 0.05e-3, gap
 
 
+def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along_its_slip():
+    # The same ant two steps later (session 32): in the whole solve two feet let go and `settle`
+    # turns a third to sliding, its friction along where the first solve's sticking friction
+    # pointed; the second solve then slid that foot 0.27 m along its friction, and the step took the
+    # ant from 6.5 J to 77 J (4 sweeps alone: to 5.0 J). A solve whose sliding friction pushes with
+    # the slip gives way as a jammed one does (`tree_contacts.slides_with_its_friction`): 13.8 J.
+    model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=1, iterations=1, tree_solve=True)
+    saved = np.load(ASSETS / "ant_landing_foot_slides_with_its_friction.npz")
+    state = dbd.State(**{name: jnp.asarray(saved[name]) for name in ("pos", "quat", "vel", "ang_vel")})
+    after = jax.jit(lambda s, c: dbd.step(model, s, c))(state, jnp.asarray(saved["control"]))
+    before, energy = (float(dbd.diagnostics.energy(model, s)) for s in (state, after))
+    print(f"\nenergy {before:.2f} J -> {energy:.2f} J")
+    assert abs(before - 6.45) < 0.01
+    assert energy < 20.0
+
+
 def driven_arm(kinds, max_torque=1e4, damping=100.0, **finalize):
     """A horizontal arm of 0.5 m, 2 kg links from the world, each joint of `kinds` ("hinge",
     "ball", "universal") driven toward its build pose with stiffness 2000 N m/rad."""

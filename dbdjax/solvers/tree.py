@@ -697,7 +697,10 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     if tilts is not None:  # a decision only: no gradient flows through it
         stop = jax.lax.stop_gradient
         frozen = contact._replace(jacobian=stop(contact.jacobian), compliance=stop(contact.compliance))
-        jammed = tree_contacts.jammed(frozen, index, count, stop(solved[4]))
+        step = stop(jnp.concatenate([dx, dtheta], axis=-1))
+        jammed = tree_contacts.jammed(frozen, index, count, stop(solved[4])) | tree_contacts.slides_with_its_friction(
+            frozen._replace(gap=stop(contact.gap)), step
+        )
     increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
     if angular is not None:
         increments = angular_increments(structure, angular, kappa[:, 3:])
