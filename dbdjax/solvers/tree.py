@@ -670,7 +670,7 @@ class _Solved(NamedTuple):
     contact: tree_contacts.ContactRows | None
     contact_steps: jnp.ndarray | None  # (R_c,)
     factors: Factors
-    jammed: jnp.ndarray | None = None  # () bool: `tree_contacts.jammed` of its contact rows (None: no contacts)
+    jammed: jnp.ndarray | None = None  # () bool: its contact rows `jammed` or `slides_with_its_friction` (None: none)
 
 
 def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, saturated=None,
@@ -696,11 +696,11 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     jammed = None
     if tilts is not None:  # a decision only: no gradient flows through it
         stop = jax.lax.stop_gradient
-        frozen = contact._replace(jacobian=stop(contact.jacobian), compliance=stop(contact.compliance))
+        frozen = contact._replace(jacobian=stop(contact.jacobian), compliance=stop(contact.compliance),
+                                  gap=stop(contact.gap))  # fmt: skip
         step = stop(jnp.concatenate([dx, dtheta], axis=-1))
-        jammed = tree_contacts.jammed(frozen, index, count, stop(solved[4])) | tree_contacts.slides_with_its_friction(
-            frozen._replace(gap=stop(contact.gap)), step
-        )
+        jammed = tree_contacts.jammed(frozen, index, count, stop(solved[4]))
+        jammed = jammed | tree_contacts.slides_with_its_friction(frozen, step)
     increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
     if angular is not None:
         increments = angular_increments(structure, angular, kappa[:, 3:])
@@ -756,8 +756,9 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     limit is out from the start). Each such row's new multiplier step is a load on its bodies, and
     the solve is taken again without the row, at the same configuration, with the load in its
     right-hand side. A solve whose sliding points'
-    tilted rows make it ill-posed (`tree_contacts.jammed`, Painleve's case) is not kept: a first
-    solve is taken again with every point sticking, a second gives way to the first.
+    tilted rows make it ill-posed (`tree_contacts.jammed`, Painleve's case), or whose sliding
+    friction ends up pushing along its point's slip (`tree_contacts.slides_with_its_friction`), is
+    not kept: a first solve is taken again with every point sticking, a second gives way to the first.
     """
     structure = model.structure
     first = _solve_once(model, bodies, touching, multipliers, targets)
