@@ -755,10 +755,10 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     followed by the solve held the arm up with 2.5 times the limit; a drive the sweeps left at its
     limit is out from the start). Each such row's new multiplier step is a load on its bodies, and
     the solve is taken again without the row, at the same configuration, with the load in its
-    right-hand side. A solve whose sliding points'
-    tilted rows make it ill-posed (`tree_contacts.jammed`, Painleve's case), or whose sliding
-    friction ends up pushing along its point's slip (`tree_contacts.slides_with_its_friction`), is
-    not kept: a first solve is taken again with every point sticking, a second gives way to the first.
+    right-hand side. A solve whose sliding points' tilted rows make it ill-posed
+    (`tree_contacts.jammed`, Painleve's case), or whose sliding friction ends up pushing along its
+    point's slip (`tree_contacts.slides_with_its_friction`), is not kept: a first solve is taken
+    again with every point sticking, a second gives way to the first.
     """
     structure = model.structure
     first = _solve_once(model, bodies, touching, multipliers, targets)

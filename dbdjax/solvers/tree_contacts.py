@@ -311,7 +311,7 @@ def jammed(rows: ContactRows, index: jnp.ndarray, count: jnp.ndarray, response: 
 
 def slides_with_its_friction(rows: ContactRows, step: jnp.ndarray) -> jnp.ndarray:
     """() bool: whether a sliding point's friction pushes along its slip after the solve's step
-    (N + 1, 6) rather than against it (DBD (93): kinetic friction opposes the slip). Its direction
+    (N + 1, 6) rather than against it (kinetic friction, DBD (92)-(93), opposes the slip). Its direction
     was chosen before the solve (the sweeps' friction, or where `settle` found the sticking
     friction); a solve that then moves the point along it has its friction do work on the body.
     Brax's ant landing with random controls: a foot that `settle` turned to sliding slid 0.27 m in
