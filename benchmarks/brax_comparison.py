@@ -173,10 +173,14 @@ def _seconds(function, *args) -> float:
     return time.perf_counter() - started
 
 
+def uniform_controls(control_range: np.ndarray, shape: tuple[int, ...], seed: int = 0) -> np.ndarray:
+    """shape + (num_controls,) controls uniform in each actuator's range (control_range (num_controls, 2))."""
+    low, high = control_range[:, 0], control_range[:, 1]
+    return low + np.random.default_rng(seed).uniform(size=shape + (len(low),)) * (high - low)
+
+
 def random_controls(engine: Engine, shape: tuple[int, ...], seed: int = 0) -> jnp.ndarray:
-    low, high = engine.control_range[:, 0], engine.control_range[:, 1]
-    unit = np.random.default_rng(seed).uniform(size=shape + (engine.num_controls,))
-    return jnp.asarray(low + unit * (high - low), jnp.float32)
+    return jnp.asarray(uniform_controls(engine.control_range, shape, seed), jnp.float32)
 
 
 def rollout_function(engine: Engine, step: Callable | None = None):

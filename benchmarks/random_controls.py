@@ -24,30 +24,21 @@ import jax.numpy as jnp
 import machine
 import numpy as np
 
-import dbdjax as dbd
 
-
-def controls(control_range: np.ndarray, steps: int, batch: int, seed: int) -> np.ndarray:
-    """(steps, batch, num_controls) uniform in each actuator's range."""
-    low, high = control_range[:, 0], control_range[:, 1]
-    return low + np.random.default_rng(seed).uniform(size=(steps, batch, len(low))) * (high - low)
-
-
-def dbdjax_spread(xml: Path, engine: str, steps: int, batch: int, seed: int) -> dict:
-    """Per copy: largest body speed, spin and joint gap over the rollout."""
-    settings = {"substeps": 1, "iterations": brax_comparison.DBD_ITERATIONS, **brax_comparison.DBDJAX_VARIANTS[engine]}
-    model = dbd.load_mjcf(xml, **settings)
-    drive = jnp.asarray(controls(np.asarray(model.control_range), steps, batch, seed), jnp.float32)
-    state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), dbd.init(model))
+def dbdjax_spread(xml: Path, variant: str, steps: int, batch: int, seed: int) -> dict:
+    """Per copy: largest body speed, spin and joint gap over the rollout of a `brax_comparison`
+    dbdjax variant (its settings: 1 substep, DBD_ITERATIONS sweeps unless the variant says)."""
+    engine = brax_comparison.dbdjax_engine(xml, variant)
+    drive = brax_comparison.random_controls(engine, (steps, batch), seed)
+    state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), engine.init())
 
     def one(state, control):
-        state = jax.vmap(lambda s, c: dbd.step(model, s, c))(state, control)
-        gap = jax.vmap(lambda s: jnp.max(dbd.diagnostics.joint_gaps(model, s)))(state)
+        state = jax.vmap(engine.step)(state, control)
         speed = jnp.max(jnp.linalg.norm(state.vel, axis=-1), axis=-1)
         spin = jnp.max(jnp.linalg.norm(state.ang_vel, axis=-1), axis=-1)
-        return state, (speed, spin, gap)
+        return state, (speed, spin, jax.vmap(engine.joint_gap)(state))
 
-    _, (speed, spin, gap) = dbd.jit(lambda s, c: jax.lax.scan(one, s, c))(state, drive)
+    _, (speed, spin, gap) = brax_comparison.jit(lambda s, c: jax.lax.scan(one, s, c))(state, drive)
     return {
         "largest_speed_m_s": np.asarray(speed).max(axis=0).round(3).tolist(),
         "largest_spin_rad_s": np.asarray(spin).max(axis=0).round(2).tolist(),
@@ -62,7 +53,7 @@ def mujoco_spread(xml: Path, steps: int, batch: int, seed: int) -> dict:
 
     m = mujoco.MjModel.from_xml_path(str(xml))
     data = mujoco.MjData(m)
-    drive = controls(np.asarray(m.actuator_ctrlrange), steps, batch, seed)
+    drive = brax_comparison.uniform_controls(np.asarray(m.actuator_ctrlrange), (steps, batch), seed)
     velocity = np.zeros(6)
     speeds, spins = [], []
     for copy in range(batch):

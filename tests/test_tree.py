@@ -348,16 +348,23 @@ def test_tree_solve_closes_what_its_linearisation_leaves_of_the_landing_ants_joi
     assert gaps.max() < 0.2e-3, gaps.max()
 
 
-def test_tree_solve_takes_its_second_solve_where_the_first_was_when_landing_feet_let_go():
-    # Brax's ant with random controls (dbd-tree-1) one step after a foot touched down (session 32,
-    # ant 13 of 16 of `brax_comparison.random_controls`-like controls, step 24): in the whole solve
-    # two feet would pull and let go, one slides and one comes in. Their loads moved the bodies
-    # first (the legs 0.2-1 rad) and the second solve was linearised there: the step left 0.61 mm of
-    # joint gap. Linearised where the first solve was, with the loads on its right-hand side: 0.0069 mm.
+def _step_a_saved_ant(name):
+    """Brax's ant at dbd-tree-1 (1 substep, 1 sweep, tree_solve) from a state and control saved in
+    tests/assets/<name>.npz: (model, that state, the state one step later)."""
     model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=1, iterations=1, tree_solve=True)
-    saved = np.load(ASSETS / "ant_landing_two_feet_let_go.npz")
-    state = dbd.State(**{name: jnp.asarray(saved[name]) for name in ("pos", "quat", "vel", "ang_vel")})
-    after = jax.jit(lambda s, c: dbd.step(model, s, c))(state, jnp.asarray(saved["control"]))
+    saved = np.load(ASSETS / f"{name}.npz")
+    state = dbd.State(**{field: jnp.asarray(saved[field]) for field in ("pos", "quat", "vel", "ang_vel")})
+    return model, state, jax.jit(lambda s, c: dbd.step(model, s, c))(state, jnp.asarray(saved["control"]))
+
+
+def test_tree_solve_takes_its_second_solve_where_the_first_was_when_landing_feet_let_go():
+    # Brax's ant under random controls (`benchmarks/random_controls.py --model ant`, copy 13 at 607c410, the
+    # state after step 25, just after its feet touched down; session 32): the whole solve's
+    # active-set step changes its contacts and takes a second solve. When that solve first moved the
+    # bodies by their free response to the changes' loads and was linearised there, the step left
+    # 0.61 mm of joint gap; linearised where the first solve was, the loads on its right-hand side,
+    # 0.0069 mm.
+    model, _, after = _step_a_saved_ant("ant_landing_two_feet_let_go")
     gap = float(jnp.max(dbd.diagnostics.joint_gaps(model, after)))
     assert np.isfinite(np.asarray(after.vel)).all()
     assert gap < 0.05e-3, gap
@@ -369,10 +376,7 @@ def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along
     # pointed; the second solve then slid that foot 0.27 m along its friction, and the step took the
     # ant from 6.5 J to 77 J (4 sweeps alone: to 5.0 J). A solve whose sliding friction pushes with
     # the slip gives way as a jammed one does (`tree_contacts.slides_with_its_friction`): 13.8 J.
-    model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=1, iterations=1, tree_solve=True)
-    saved = np.load(ASSETS / "ant_landing_foot_slides_with_its_friction.npz")
-    state = dbd.State(**{name: jnp.asarray(saved[name]) for name in ("pos", "quat", "vel", "ang_vel")})
-    after = jax.jit(lambda s, c: dbd.step(model, s, c))(state, jnp.asarray(saved["control"]))
+    model, state, after = _step_a_saved_ant("ant_landing_foot_slides_with_its_friction")
     before, energy = (float(dbd.diagnostics.energy(model, s)) for s in (state, after))
     print(f"\nenergy {before:.2f} J -> {energy:.2f} J")
     assert abs(before - 6.45) < 0.01

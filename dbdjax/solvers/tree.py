@@ -422,6 +422,7 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
 _EULER_LOWER = slice(joint_family.EULER_LOWER, joint_family.EULER_LOWER + 3)
 _EULER_UPPER = slice(joint_family.EULER_UPPER, joint_family.EULER_UPPER + 3)
 _DRIVE = slice(joint_family.DRIVE, joint_family.DRIVE + 3)
+_POINT = slice(joint_family.POINT, joint_family.POINT + 3)
 
 
 def _drive_torque(model: Model, multipliers: jnp.ndarray, h: float) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -657,7 +658,7 @@ def initial_guess(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarr
     integrated impulse times h on body a of each joint (-kappa on b; 0 outside the tree).
     """
     dx, dtheta, increments, _ = direct_step(model, bodies)
-    return dx, dtheta, increments[:, joint_family.POINT : joint_family.POINT + 3]
+    return dx, dtheta, increments[:, _POINT]
 
 
 class _Solved(NamedTuple):
@@ -679,7 +680,7 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     structure = model.structure
     points = point_gaps(model, bodies)
     angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets, saturated)
-    point_multipliers = None if multipliers is None else multipliers[:, joint_family.POINT : joint_family.POINT + 3]
+    point_multipliers = None if multipliers is None else multipliers[:, _POINT]
     held = contact = tilts = None
     if touching is not None:
         held = touching.held
@@ -704,7 +705,7 @@ def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, s
     increments = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), kappa.dtype)
     if angular is not None:
         increments = angular_increments(structure, angular, kappa[:, 3:])
-    increments = increments.at[:, joint_family.POINT : joint_family.POINT + 3].set(kappa[:, :3])
+    increments = increments.at[:, _POINT].set(kappa[:, :3])
     return _Solved(dx, dtheta, increments, angular, contact, contact_steps, factors, jammed)
 
 
@@ -725,7 +726,7 @@ def _closing_step(model: Model, factors: Factors, bodies: BodySet, multipliers: 
     step: the correction is of the size of the gaps it closes."""
     world, num_joints = model.structure.num_bodies, model.structure.num_joints
     delta, _, _ = point_gaps(model, bodies)
-    delta = delta + model.joints.regularization[:, None] * multipliers[:, joint_family.POINT : joint_family.POINT + 3]
+    delta = delta + model.joints.regularization[:, None] * multipliers[:, _POINT]
     rows = factors.matrices.shape[-2]
     delta = jnp.concatenate([delta, jnp.zeros((num_joints, rows - 3), delta.dtype)], axis=-1)
     gap = _slot_rows(factors, delta)  # (L, W, R)
@@ -774,8 +775,7 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         dx, dtheta, increments, contacts = result
         after = bodies._replace(dx=bodies.dx + dx, dtheta=bodies.dtheta + dtheta)
         chord_dx, chord_dtheta, chord_kappa = _closing_step(model, factors, after, lam + increments)
-        point = slice(joint_family.POINT, joint_family.POINT + 3)
-        return dx + chord_dx, dtheta + chord_dtheta, increments.at[:, point].add(chord_kappa), contacts
+        return dx + chord_dx, dtheta + chord_dtheta, increments.at[:, _POINT].add(chord_kappa), contacts
 
     limited = first.angular is not None and _row_groups(structure).drives and structure.joint_drive_limited.array.any()
     if not limited and touching is None:

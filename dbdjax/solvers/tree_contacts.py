@@ -217,11 +217,20 @@ def added_right_sides(rows: ContactRows, num_bodies: int) -> jnp.ndarray:
     return jnp.zeros((num_bodies + 1, 6), right.dtype).at[rows.body].add(right)
 
 
+def row_moves(rows: ContactRows, step: jnp.ndarray) -> jnp.ndarray:
+    """(R,) J dX: how far a solve's step (N + 1, 6) of every body moves each row."""
+    return jnp.sum(rows.jacobian * step[rows.body], axis=-1)
+
+
+def sliding_points(rows: ContactRows) -> jnp.ndarray:
+    """(R / 3,) bool: the points that slide (normal row on, friction rows off; `contact_rows`)."""
+    return rows.on[::3] & ~rows.on[1::3]
+
+
 def row_steps(rows: ContactRows, step: jnp.ndarray) -> jnp.ndarray:
     """(R,) each row's multiplier step kappa = -(r + J dX) / alpha, given the solve's (N + 1, 6) step
     (dx, dtheta) of every body, a sliding point's friction mu s times its normal's; 0 where off."""
-    moved = jnp.sum(rows.jacobian * step[rows.body], axis=-1)
-    steps = jnp.where(rows.on, -(rows.residual + moved) / rows.compliance, 0.0).reshape(-1, 3)
+    steps = jnp.where(rows.on, -(rows.residual + row_moves(rows, step)) / rows.compliance, 0.0).reshape(-1, 3)
     return (steps + rows.slide.reshape(-1, 3) * steps[:, :1]).reshape(-1)
 
 
@@ -236,11 +245,10 @@ def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.
     A point that was out of the solve and that its step (N + 1, 6) takes into the floor enters it.
     (Without, Brax's ant at 4 iterations rebounded 0.3 J after landing: the solve pushed feet that
     had only just touched into the floor.)"""
-    moved = jnp.sum(rows.jacobian * step[rows.body], axis=-1)
     offs, slidings, directions, loads, enters = [], [], [], [], []
     changed = jnp.zeros((), bool)
     per_group = (_grouped(x, touching) for x in (rows.multipliers, rows.on, steps, rows.jacobian[:, :3],
-                                                  rows.gap + moved, rows.touches))  # fmt: skip
+                                                  rows.gap + row_moves(rows, step), rows.touches))  # fmt: skip
     for slots, lam, on, step_here, along, gap_after, touches in zip(touching.slots, *per_group, strict=True):
         total = lam + step_here  # along: +-(n, t1, t2); gap_after: linearised
         enter = touches[..., 0] & ~on[..., 0] & (gap_after[..., 0] < 0.0)
@@ -275,7 +283,7 @@ def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.
 def tilted(rows: ContactRows) -> tuple[jnp.ndarray, jnp.ndarray]:
     """The points whose normal rows are tilted (sliding, `contact_rows`): (TILTED,) their indices
     (R / 3 where fewer slide) and () how many slide."""
-    sliding = rows.on[::3] & ~rows.on[1::3]
+    sliding = sliding_points(rows)
     (index,) = jnp.nonzero(sliding, size=TILTED, fill_value=len(sliding))
     return index, jnp.sum(sliding)
 
@@ -316,10 +324,9 @@ def slides_with_its_friction(rows: ContactRows, step: jnp.ndarray) -> jnp.ndarra
     friction); a solve that then moves the point along it has its friction do work on the body.
     Brax's ant landing with random controls: a foot that `settle` turned to sliding slid 0.27 m in
     one step along its friction, and the ant's energy went from 6.5 J to 77 J."""
-    slip = (rows.gap + jnp.sum(rows.jacobian * step[rows.body], axis=-1)).reshape(-1, 3)[:, 1:]  # t1, t2
-    sliding = rows.on[::3] & ~rows.on[1::3]
+    slip = (rows.gap + row_moves(rows, step)).reshape(-1, 3)[:, 1:]  # along t1, t2 this substep
     along = jnp.sum(rows.slide.reshape(-1, 3)[:, 1:] * slip, axis=-1)
-    return jnp.any(sliding & (along > 0.0) & (math.safe_norm(slip) > SLIP))
+    return jnp.any(sliding_points(rows) & (along > 0.0) & (math.safe_norm(slip) > SLIP))
 
 
 def sticking(settled: Settled) -> Settled:
