@@ -23,3 +23,21 @@ def central_difference(function, x, epsilon=1e-6):
 def relative_error(a, b):
     """|a - b| / |b| (b's norm floored at 1e-12)."""
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / max(np.linalg.norm(np.asarray(b)), 1e-12))
+
+
+def gradient_and_central_difference(loss, x, epsilon=1e-6):
+    """(gradient, central differences) of the scalar loss(x) with respect to every leaf of the
+    pytree x (arrays), as pytrees like x, from one compiled program: its value gives the
+    differences. Compiling the value alone again cost these tests a fifth of their time or more,
+    and on their small models the gradient costs little more to run than the value."""
+    value_and_gradient = quick_jit(jax.value_and_grad(loss))
+    analytic = value_and_gradient(x)[1]
+    leaves, structure = jax.tree.flatten(x)
+
+    def value_with(k, leaf):
+        return float(value_and_gradient(jax.tree.unflatten(structure, leaves[:k] + [leaf] + leaves[k + 1 :]))[0])
+
+    numeric = [
+        central_difference(lambda leaf, k=k: value_with(k, leaf), leaf, epsilon) for k, leaf in enumerate(leaves)
+    ]
+    return analytic, jax.tree.unflatten(structure, numeric)

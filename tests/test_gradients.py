@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scenes
-from derivatives import central_difference, quick_jit, relative_error
+from derivatives import central_difference, gradient_and_central_difference, quick_jit, relative_error
 
 import dbdjax as dbd
 
@@ -32,8 +32,7 @@ def test_gradient_wrt_initial_velocity_matches_finite_differences(float64):
     def loss(velocity):
         return tip_height_after(model, dataclasses.replace(start, vel=velocity))
 
-    analytic = quick_jit(jax.grad(loss))(start.vel)
-    numeric = central_difference(quick_jit(loss), start.vel)
+    analytic, numeric = gradient_and_central_difference(loss, start.vel)
     assert relative_error(analytic, numeric) < 1e-4
 
 
@@ -48,8 +47,7 @@ def test_gradient_wrt_body_mass_matches_finite_differences(float64, checkpoint):
         return tip_height_after(dataclasses.replace(model, bodies=bodies, joints=joints), start)
 
     mass, anchor = model.bodies.mass, model.joints.local_anchor_b
-    analytic_mass = quick_jit(jax.grad(loss, argnums=0))(mass, anchor)
-    numeric_mass = central_difference(quick_jit(lambda m: loss(m, anchor)), mass)
+    analytic_mass, numeric_mass = gradient_and_central_difference(lambda m: loss(m, anchor), mass)
     assert relative_error(analytic_mass, numeric_mass) < 1e-4
 
 
@@ -64,8 +62,7 @@ def test_gradient_wrt_joint_anchor_matches_finite_differences(float64):
         return tip_height_after(dataclasses.replace(model, joints=joints), start)
 
     anchor = model.joints.local_anchor_b
-    analytic = quick_jit(jax.grad(loss))(anchor)
-    numeric = central_difference(quick_jit(loss), anchor)
+    analytic, numeric = gradient_and_central_difference(loss, anchor)
     assert relative_error(analytic, numeric) < 1e-4
 
 
@@ -79,8 +76,7 @@ def test_gradient_wrt_gravity_and_limits_is_finite_and_matches(float64):
         final, _ = dbd.rollout(dataclasses.replace(model, gravity=gravity), dbd.init(model), steps=20)
         return final.pos[0, 0]
 
-    analytic = jax.grad(loss)(model.gravity)
-    numeric = central_difference(quick_jit(loss), model.gravity)
+    analytic, numeric = gradient_and_central_difference(loss, model.gravity)
     assert relative_error(analytic, numeric) < 1e-4
 
 
@@ -166,24 +162,27 @@ def soft_scene():
     return b.finalize(dt=1 / 60, iterations=6)
 
 
-@pytest.mark.parametrize(
-    "family, field",
-    [("springs", "stiffness"), ("springs", "damping"), ("springs", "rest_length"), ("ropes", "length"),
-     ("volumes", "rest_volume")],
-)  # fmt: skip
-def test_gradient_wrt_spring_rope_and_volume_parameters(float64, family, field):
+SOFT_PARAMETERS = [("springs", "stiffness"), ("springs", "damping"), ("springs", "rest_length"), ("ropes", "length"),
+                   ("volumes", "rest_volume")]  # fmt: skip
+
+
+def test_gradient_wrt_spring_rope_and_volume_parameters(float64):
+    # All five parameters in one program (it was one test per parameter, each compiling the same
+    # rollout's gradient again), each checked on its own.
     model = soft_scene()
 
-    def loss(value):
-        part = dataclasses.replace(getattr(model, family), **{field: value})
-        final, _ = dbd.rollout(dataclasses.replace(model, **{family: part}), dbd.init(model), steps=20)
+    def loss(values):
+        parts = {family: getattr(model, family) for family, _ in SOFT_PARAMETERS}
+        for (family, field), value in zip(SOFT_PARAMETERS, values, strict=True):
+            parts[family] = dataclasses.replace(parts[family], **{field: value})
+        final, _ = dbd.rollout(dataclasses.replace(model, **parts), dbd.init(model), steps=20)
         return jnp.sum(final.pos[:, 2] * jnp.arange(1.0, 5.0)) + jnp.sum(final.pos[:, 0])
 
-    value = getattr(getattr(model, family), field)
-    analytic = quick_jit(jax.grad(loss))(value)
-    numeric = central_difference(quick_jit(loss), value)
-    assert np.all(np.isfinite(np.asarray(analytic)))
-    assert relative_error(analytic, numeric) < 1e-4
+    values = [getattr(getattr(model, family), field) for family, field in SOFT_PARAMETERS]
+    analytic, numeric = gradient_and_central_difference(loss, values)
+    for parameter, gradient, difference in zip(SOFT_PARAMETERS, analytic, numeric, strict=True):
+        assert np.all(np.isfinite(np.asarray(gradient))), parameter
+        assert relative_error(gradient, difference) < 1e-4, parameter
 
 
 def test_gradient_wrt_user_force_parameters(float64):
@@ -201,8 +200,6 @@ def test_gradient_wrt_user_force_parameters(float64):
         final, _ = dbd.rollout(dataclasses.replace(model, forces=(params,)), dbd.init(model), steps=30)
         return jnp.sum(final.pos * jnp.array([1.0, 2.0, 3.0]))
 
-    params = model.forces[0]
-    analytic = quick_jit(jax.grad(loss))(params)
-    for name in params:
-        numeric = central_difference(quick_jit(lambda v, n=name: loss({**params, n: v})), params[name])
-        assert relative_error(analytic[name], numeric) < 1e-4, name
+    analytic, numeric = gradient_and_central_difference(loss, model.forces[0])
+    for name in analytic:
+        assert relative_error(analytic[name], numeric[name]) < 1e-4, name

@@ -214,6 +214,7 @@ def _mixed_tree():
     return b.finalize(dt=1 / 60, iterations=4)
 
 
+@pytest.mark.slow  # 50 s on CI: a guard of how the sweeps are traced (every kind's rows give the same steps)
 def test_projecting_each_kind_of_joint_with_its_own_rows_changes_no_result(float64, monkeypatch):
     """The solver projects the joints kind by kind (`joint_rows.variants`), each kind traced with its
     own rows only; the rows a kind lacks are inactive, so this must give what one projection of

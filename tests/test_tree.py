@@ -222,6 +222,9 @@ def test_tree_solve_is_refused_by_the_impulse_solver():
         scenes.chain(3, dt=1 / 60, solver="impulse", tree_solve=True)
 
 
+# 60 s on CI (a 10 s rollout). A standing doll with tree_solve stays in CI through
+# test_tree_contacts.py's quiet standing doll whose foot point slides.
+@pytest.mark.slow
 def test_tree_solve_keeps_the_standing_ragdoll_on_its_feet():
     # Without the feet's contacts in the direct solve each direct step pulled the light feet back
     # toward the body and the doll (2 x 8, zero control) collapsed: a body 458 mm from its build
@@ -314,6 +317,9 @@ def test_tree_solve_steps_a_pendulum_with_heavy_rotors_as_converged_sweeps_do(fl
     assert float(jnp.max(jnp.abs(solved.pos - converged.pos))) < 1e-8
 
 
+# 110 s on CI (three engines' 100-step programs). The landing ant's tree solve stays in CI through
+# the closing-step test below and the three saved landing states after it.
+@pytest.mark.slow
 def test_tree_solve_lands_the_ant_as_many_sweeps_do():
     # Brax's ant dropped with zero control (armature 40-120 x its legs' inertia, soft limits): with
     # 4 sweeps alone it sags to 0.27 m at landing and gains 0.66 J; with tree_solve at 1 and 4
@@ -348,10 +354,10 @@ def test_tree_solve_closes_what_its_linearisation_leaves_of_the_landing_ants_joi
     assert gaps.max() < 0.2e-3, gaps.max()
 
 
-def _step_a_saved_ant(name):
-    """Brax's ant at dbd-tree-1 (1 substep, 1 sweep, tree_solve) from a state and control saved in
-    tests/assets/<name>.npz: (model, that state, the state one step later)."""
-    model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=1, iterations=1, tree_solve=True)
+def _step_a_saved_ant(name, substeps=1):
+    """Brax's ant at dbd-tree-1 (1 sweep, tree_solve; 1 substep unless asked) from a state and
+    control saved in tests/assets/<name>.npz: (model, that state, the state one step later)."""
+    model = dbd.load_mjcf(ASSETS / "ant.xml", substeps=substeps, iterations=1, tree_solve=True)
     saved = np.load(ASSETS / f"{name}.npz")
     state = dbd.State(**{field: jnp.asarray(saved[field]) for field in ("pos", "quat", "vel", "ang_vel")})
     return model, state, jax.jit(lambda s, c: dbd.step(model, s, c))(state, jnp.asarray(saved["control"]))
@@ -381,6 +387,21 @@ def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along
     print(f"\nenergy {before:.2f} J -> {energy:.2f} J")
     assert abs(before - 6.45) < 0.01
     assert energy < 20.0
+
+
+@pytest.mark.slow  # a known defect, kept as its reproduction (45 s): it fails until that is fixed
+@pytest.mark.xfail(strict=True, reason="the tree solve's contact rows gain energy at this landing (session 33)")
+def test_tree_solve_lands_the_sliding_foot_ant_without_gaining_energy_at_four_substeps():
+    # The state of the test above at 4 substeps: 4 x 8 sweeps alone take it from 6.45 J to 9.61 J, 1 x 32
+    # to 5.57 J; dbd-tree-1 to 71.4 J (the whole ant thrown up at 11 m/s). Session 33 found the
+    # same with every friction coefficient 0 (128.7 J), with the ant's limits off (72.0 J), without
+    # the restitution pass (75.7 J) and without the sweeps' point-only direct solve (78.4 J); lifted
+    # 1 m clear of the floor the step gains 0.4 J as the sweeps' does. So: the whole solve's normal
+    # contact rows at a landing. Not found yet.
+    model, state, after = _step_a_saved_ant("ant_landing_foot_slides_with_its_friction", substeps=4)
+    before, energy = (float(dbd.diagnostics.energy(model, s)) for s in (state, after))
+    print(f"\nenergy {before:.2f} J -> {energy:.2f} J")
+    assert energy < 10.0
 
 
 def driven_arm(kinds, max_torque=1e4, damping=100.0, **finalize):
