@@ -28,8 +28,8 @@ def relative_error(a, b):
 def gradient_and_central_difference(loss, x, epsilon=1e-6):
     """(gradient, central differences) of the scalar loss(x) with respect to every leaf of the
     pytree x (arrays), as pytrees like x, from one compiled program: its value gives the
-    differences. Compiling the value alone again cost these tests a fifth of their time or more,
-    and on their small models the gradient costs little more to run than the value."""
+    differences. (The tests' time is mostly compiling; the value alone was a second program, and on
+    their small models the gradient costs little more to run than the value.)"""
     value_and_gradient = quick_jit(jax.value_and_grad(loss))
     analytic = value_and_gradient(x)[1]
     leaves, structure = jax.tree.flatten(x)
