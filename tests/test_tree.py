@@ -389,11 +389,11 @@ def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along
     assert energy < 20.0
 
 
-@pytest.mark.slow  # a known defect, kept as its reproduction (45 s): it fails until that is fixed
+@pytest.mark.slow  # a known defect, kept as its reproduction (33 s alone): it fails until that is fixed
 @pytest.mark.xfail(strict=True, reason="the tree solve's contact rows gain energy at this landing (session 33)")
 def test_tree_solve_lands_the_sliding_foot_ant_without_gaining_energy_at_four_substeps():
     # The state of the test above at 4 substeps: 4 x 8 sweeps alone take it from 6.45 J to 9.61 J, 1 x 32
-    # to 5.57 J; dbd-tree-1 to 71.4 J (the whole ant thrown up at 11 m/s). Session 33 found the
+    # to 5.57 J; one sweep and tree_solve at 4 substeps to 71.4 J (the torso up at 11 m/s). Session 33 found the
     # same with every friction coefficient 0 (128.7 J), with the ant's limits off (72.0 J), without
     # the restitution pass (75.7 J), without the sweeps' point-only direct solve (78.4 J) and in
     # float64 (71.6 J); lifted 1 m clear of the floor its energy stays within 0.5 J over 3 steps,
