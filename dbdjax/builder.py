@@ -1078,6 +1078,7 @@ class ModelBuilder:
         checkpoint: bool = False,
         contact_margin: float = 0.01,
         contact_compliance: float = 0.0,
+        depenetration_speed: float = 1.0,
         restitution_iterations: int = 2,
         initial_guess: str = "zero",
         baumgarte: float = 0.2,
@@ -1093,7 +1094,10 @@ class ModelBuilder:
         contact_margin: m, shapes closer than this get contact slots (speculative contacts; they
         only push once they touch). contact_compliance: m/N, 0 for rigid contacts; a small value
         (1e-6 .. 1e-4) makes contact a stiff spring, whose gradients are smoother for trajectory
-        optimisation. restitution_iterations: sweeps of the velocity pass (restitution).
+        optimisation. depenetration_speed: m/s, the fastest the DBD solver pushes a point out of a
+        penetration it began a substep in (the rest waits for the next substeps; inf: all at once,
+        which gives a deep point depth / h, a kick at small h). restitution_iterations: sweeps of
+        the velocity pass (restitution).
         solver: "dbd" (DBD Algorithm 1, positions) or "impulse" (SI: sequential impulses on the
         velocities with Baumgarte bias, semi-implicit Euler; solvers/impulse.py). The impulse
         solver has velocity rows for every joint kind (universal and gimbal joints: the point,
@@ -1142,11 +1146,17 @@ class ModelBuilder:
             raise ValueError("finalize: the model has no bodies")
         contact_margin = self._non_negative(contact_margin, "finalize: contact_margin")
         contact_compliance = self._non_negative(contact_compliance, "finalize: contact_compliance")
+        depenetration_speed = float(depenetration_speed)
+        if not depenetration_speed > 0.0:  # NaN fails this too
+            raise ValueError(
+                f"finalize: depenetration_speed must be positive (m/s; inf for none), got {depenetration_speed}"
+            )
 
         options = Options(
             dt=dt, substeps=int(substeps), iterations=int(iterations), solver=solver,
             jacobi=bool(jacobi), velocity_dependent_inertia=bool(velocity_dependent_inertia),
             checkpoint=bool(checkpoint), contact_margin=contact_margin, contact_compliance=contact_compliance,
+            depenetration_speed=depenetration_speed,
             restitution_iterations=int(restitution_iterations), initial_guess=initial_guess, baumgarte=baumgarte,
             tree_solve=bool(tree_solve),
         )  # fmt: skip

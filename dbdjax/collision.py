@@ -817,6 +817,12 @@ class ContactSlots(NamedTuple):
     active: (C, P) bool, a slot with a point closer than the contact margin.
     friction, dynamic_friction, restitution: (C,) the pair's combined material:
       sqrt(mu_1 mu_2) for both frictions and max(e_1, e_2), as Box2D combines them.
+    allowed_depth: (C, P) m, how deep the point may still be at the end of the substep: what is
+      left of the penetration it began the substep in after pushing it out by
+      `Options.depenetration_speed` h (0 for a point that began outside).
+    pushout_speed: (C, P) m/s, the normal speed that pushing it out of that penetration gives it
+      (its depth at the start, at most depenetration_speed h, over h): what the restitution pass
+      may take back.
     """
 
     local_a: jnp.ndarray
@@ -829,6 +835,8 @@ class ContactSlots(NamedTuple):
     friction: jnp.ndarray
     dynamic_friction: jnp.ndarray
     restitution: jnp.ndarray
+    allowed_depth: jnp.ndarray
+    pushout_speed: jnp.ndarray
 
 
 def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
@@ -887,6 +895,13 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
         friction = safe_sqrt(shapes.friction[shape[:, 0]] * shapes.friction[shape[:, 1]])
         dynamic = safe_sqrt(shapes.dynamic_friction[shape[:, 0]] * shapes.dynamic_friction[shape[:, 1]])
         restitution = jnp.maximum(shapes.restitution[shape[:, 0]], shapes.restitution[shape[:, 1]])
+        # Penetration recovery at a bounded speed (as Box2D's contact push speed and PhysX's
+        # depenetration velocity): pushed out in one substep, a point that began it inside the other
+        # shape leaves at depth / h, and at large depths or small h that is a kick. (Brax's ant
+        # landing with a foot 47 mm in the floor: at 4 substeps the whole tree solve threw its
+        # torso up at 10 m/s; MuJoCo's soft contacts, from the same state: 4.2 m/s.)
+        depth = jnp.maximum(-_dot(offset, contacts.normal), 0.0)  # (C, P) at the start of the substep
+        pushout = jnp.minimum(depth, model.options.depenetration_speed * h)
         result.append(
             ContactSlots(
                 local_a=local_a,
@@ -899,6 +914,8 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
                 friction=friction,
                 dynamic_friction=dynamic,
                 restitution=restitution,
+                allowed_depth=depth - pushout,
+                pushout_speed=pushout / h,
             )  # fmt: skip
         )
     return tuple(result)

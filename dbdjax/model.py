@@ -445,6 +445,8 @@ class Options:
     checkpoint: bool  # jax.checkpoint each substep to keep reverse-mode memory flat
     contact_margin: float = 0.01  # m: shapes closer than this get contact slots (speculative)
     contact_compliance: float = 0.0  # m/N: 0 is rigid; > 0 softens contacts (smoother gradients)
+    # m/s: the fastest the DBD solver pushes a point out of a penetration it began a substep in
+    depenetration_speed: float = 1.0
     restitution_iterations: int = 2  # Gauss-Seidel sweeps of the velocity pass
     initial_guess: str = "zero"  # "zero": dX = 0 (Algorithm 1); "tree": exact solve of the tree's linearised points
     tree_solve: bool = False  # direct solves of the joint tree: points after each sweep, whole joints after the last

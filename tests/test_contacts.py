@@ -272,3 +272,38 @@ def test_gradient_of_a_capsule_lying_still_on_the_floor_is_finite_in_float32(sol
     grads = jax.jit(jax.grad(loss))(model)
     for path, leaf in jax.tree_util.tree_leaves_with_path(grads):
         assert np.all(np.isfinite(np.asarray(leaf))), jax.tree_util.keystr(path)
+
+
+def _box_sunk_in_the_floor(depenetration_speed):
+    """A 0.2 m box at rest with its centre 0.05 m above the floor: 5 cm of it inside."""
+    b = dbd.ModelBuilder()
+    box = b.add_body(pos=(0, 0, 0.05))
+    b.add_box(box, (0.1, 0.1, 0.1))
+    b.add_plane()
+    return b.finalize(dt=1 / 60, substeps=4, iterations=8, depenetration_speed=depenetration_speed)
+
+
+@pytest.mark.parametrize("speed", [0.5, 1.0])
+def test_box_sunk_in_the_floor_comes_out_at_the_depenetration_speed_without_a_kick(speed):
+    # Pushed out by speed x h a substep (h = 1/240 s) and no faster, and the restitution pass takes
+    # that speed back: the box rises 4 h speed a step and stops at the surface. With the whole
+    # 5 cm at once (depenetration_speed=inf) and no pass it would leave at 12 m/s.
+    model = _box_sunk_in_the_floor(speed)
+    _, trajectory = _rollout(model, 30)
+    height = np.asarray(trajectory.pos[:, 0, 2])
+    np.testing.assert_allclose(height[0] - 0.05, speed / 60, atol=1e-4)
+    steps_out = int(np.ceil(0.05 / (speed / 60)))
+    np.testing.assert_allclose(height[steps_out - 1 :], 0.1, atol=1e-4)
+    assert float(jnp.max(jnp.abs(trajectory.vel))) < 1e-3
+
+
+def test_depenetration_speed_inf_pushes_a_sunk_box_out_in_one_substep():
+    _, trajectory = _rollout(_box_sunk_in_the_floor(float("inf")), 5)
+    np.testing.assert_allclose(np.asarray(trajectory.pos[:, 0, 2]), 0.1, atol=1e-4)
+    assert float(jnp.max(jnp.abs(trajectory.vel))) < 1e-3
+
+
+@pytest.mark.parametrize("speed", [0.0, -1.0, float("nan")])
+def test_depenetration_speed_must_be_positive(speed):
+    with pytest.raises(ValueError, match="finalize: depenetration_speed must be positive"):
+        _box_sunk_in_the_floor(speed)

@@ -199,7 +199,7 @@ def test_settle_lets_a_pulling_point_go_and_slides_a_point_past_its_cone():
         local_a=jnp.zeros((1, 3, 3)), local_b=jnp.zeros((1, 3, 3)), normal=jnp.tile(jnp.array([0.0, 0, 1]), (1, 3, 1)),
         offset=jnp.zeros((1, 3, 3)), approach=jnp.zeros((1, 3)), sliding=jnp.zeros((1, 3), bool),
         active=jnp.ones((1, 3), bool), friction=jnp.array([0.5]), dynamic_friction=jnp.array([0.3]),
-        restitution=jnp.zeros(1),
+        restitution=jnp.zeros(1), allowed_depth=jnp.zeros((1, 3)), pushout_speed=jnp.zeros((1, 3)),
     )  # fmt: skip
     lam = jnp.array([[1.0, 0.0, 0.0], [1.0, 0.4, 0.0], [4.0, 0.2, 0.0]])
     steps = jnp.array([[-2.0, 0.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.1, 0.0]])

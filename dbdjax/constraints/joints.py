@@ -186,6 +186,21 @@ def _coordinates(joint: Joints, flag: JointFlags, pair: BodyPair, kinds: frozens
     return angle, travel, euler, relative
 
 
+def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
+    """Every joint's coordinates at the bodies' poses pos (N, 3), quat (N, 4): (hinge or planar
+    angles (J,), slider travels (J,), universal / gimbal angles (J, 3), relative rotations from
+    rest (J, 4)), those of the kinds whose armature the model has (`rows_in_use`; else zeros)."""
+    structure = model.structure
+    kinds = rows_in_use(structure)
+    a, b = structure.joint_body_a.array, structure.joint_body_b.array
+    pos, quat = with_world_row(pos), with_world_row(quat, math.quat_identity().astype(quat.dtype))
+    zero = jnp.zeros((len(a), 3), pos.dtype)
+    scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
+    pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 8))
+    return jax.vmap(lambda joint, flag, two: _coordinates(joint, flag, two, kinds))(model.joints, flags(structure),
+                                                                                     pair)  # fmt: skip
+
+
 def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_reference: bool = False):
     """(J, 3) q(X*) - q_rotor for each degree of freedom with armature: how far the bodies'
     prediction X* carries the joint coordinate q beyond where the rotor's own inertia carries it,
@@ -198,40 +213,83 @@ def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_r
     (J, 3) gimbal angles; `Targets.reference`), which the rotor rows measure from: computed here
     once per substep instead of in every sweep over the joints."""
     structure = model.structure
-    flag = flags(structure)
-    kinds = rows_in_use(structure)
-    a, b = structure.joint_body_a.array, structure.joint_body_b.array
-    identity = math.quat_identity().astype(start.quat.dtype)
+    a = structure.joint_body_a.array
+    before = integrator.displaced_quat(start.quat, -h * start.ang_vel)
+    after, now, earlier = (joint_coordinates(model, pos, quat) for pos, quat in (
+        (predicted.pos, predicted.quat), (start.pos, start.quat), (start.pos - h * start.vel, before)))  # fmt: skip
+    quat_a = with_world_row(predicted.quat, math.quat_identity().astype(predicted.quat.dtype))[a]
+    start_quat_a = with_world_row(start.quat, math.quat_identity().astype(start.quat.dtype))[a]
 
-    def at(pos, quat) -> BodyPair:
-        pos, quat = with_world_row(pos), with_world_row(quat, identity)
-        zero = jnp.zeros((len(a), 3), pos.dtype)
-        scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
-        return BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 8))
-
-    poses = (at(predicted.pos, predicted.quat), at(start.pos, start.quat),
-             at(start.pos - h * start.vel, integrator.displaced_quat(start.quat, -h * start.ang_vel)))  # fmt: skip
-
-    def one(joint, flag, after, now, before):
-        (angle, travel, euler, relative) = zip(*(_coordinates(joint, flag, p, kinds) for p in (after, now, before)),
-                                                strict=True)  # fmt: skip
-
+    def one(flag, after, now, earlier, quat_a, start_quat_a):
+        (angle, travel, euler, relative) = zip(after, now, earlier, strict=True)
         wrapped = math.wrap_angle
 
-        def turned(later, earlier, pair):  # world rotation vector from earlier to later (relative rotations)
-            return math.quat_rotate(pair.quat_a, math.quat_log(math.quat_multiply(later, math.quat_conjugate(earlier))))
+        def turned(later, sooner, frame):  # world rotation vector from sooner to later (relative rotations)
+            return math.quat_rotate(frame, math.quat_log(math.quat_multiply(later, math.quat_conjugate(sooner))))
 
         hinge = wrapped(angle[0] - angle[1]) - wrapped(angle[1] - angle[2])
         slide = (travel[0] - travel[1]) - (travel[1] - travel[2])
         gimbal = wrapped(euler[0] - euler[1]) - wrapped(euler[1] - euler[2])
-        ball = turned(relative[0], relative[1], after) - turned(relative[1], relative[2], now)
+        ball = turned(relative[0], relative[1], quat_a) - turned(relative[1], relative[2], start_quat_a)
         first = jnp.where(flag.rotor_hinge, hinge, jnp.where(flag.rotor_slider, slide, 0.0))
         single = jnp.stack([first, jnp.zeros_like(first), jnp.zeros_like(first)])
         offset = jnp.where(flag.rotor_ball, ball, jnp.where(flag.rotor_euler, gimbal, single))
-        return offset, (angle[0], travel[0], euler[0])
+        return offset
 
-    offsets, reference = jax.vmap(one)(model.joints, flag, *poses)
-    return (offsets, reference) if with_reference else offsets
+    offsets = jax.vmap(one)(flags(structure), after, now, earlier, quat_a, start_quat_a)
+    return (offsets, after[:3]) if with_reference else offsets
+
+
+def rotor_energy(model: Model, state: State) -> jnp.ndarray:
+    """() J: the kinetic energy of the joints' rotors, 1/2 armature qdot^2 summed over every degree
+    of freedom with armature (MuJoCo's joint-space term), qdot the rate of its coordinate that the
+    bodies' velocities give (the derivative of `joint_coordinates` along them; a ball's rotor: its
+    relative angular velocity). 0 for a model without armature."""
+    structure = model.structure
+    flag = flags(structure)
+    if not (flag.rotor_hinge.any() or flag.rotor_slider.any() or flag.rotor_euler.any() or flag.rotor_ball.any()):
+        return jnp.zeros((), state.pos.dtype)
+    spin = jnp.concatenate([jnp.zeros_like(state.ang_vel[:, :1]), state.ang_vel], axis=-1)
+    turning = 0.5 * math.quat_multiply(spin, state.quat)  # dq/dt of each body's orientation
+    _, (angle, travel, euler, _) = jax.jvp(lambda pos, quat: joint_coordinates(model, pos, quat),
+                                           (state.pos, state.quat), (state.vel, turning))  # fmt: skip
+    ang_vel = with_world_row(state.ang_vel)
+    relative = ang_vel[structure.joint_body_b.array] - ang_vel[structure.joint_body_a.array]
+    armature = model.joints.armature
+    energy = (jnp.where(flag.rotor_hinge, armature[:, 0] * angle**2, 0.0)
+              + jnp.where(flag.rotor_slider, armature[:, 0] * travel**2, 0.0)
+              + jnp.sum(jnp.where(flag.rotor_euler, armature * euler**2, 0.0), axis=-1)
+              + jnp.where(flag.rotor_ball, armature[:, 0] * math.dot(relative, relative), 0.0))  # fmt: skip
+    return 0.5 * jnp.sum(energy)
+
+
+def rotor_inertia(model: Model, state: State) -> jnp.ndarray:
+    """(N, 3, 3) kg m^2, world frame: the joints' rotors' inertia as each body sees it with the
+    other body of its joint held, armature d d^T per rotating degree of freedom (d = dq/dtheta: a
+    hinge's axis, a universal / gimbal hinge's angle gradient, any direction for a ball) on both
+    bodies. For the restitution pass, which moves the bodies of its contacts alone: without it a
+    foot's spin about its knee is as cheap as its own inertia makes it, and the rotor, whose rate
+    the bodies' velocities carry, takes that spin at no cost (`contacts.project_restitution`).
+    Sliders' rotors are left out (their inertia is a mass along the axis)."""
+    structure = model.structure
+    flag = flags(structure)
+    n = structure.num_bodies
+    a, b = structure.joint_body_a.array, structure.joint_body_b.array
+    quat = with_world_row(state.quat, math.quat_identity().astype(state.quat.dtype))
+    armature = model.joints.armature
+    axis = math.quat_rotate(quat[b], model.joints.local_axis_b)  # (J, 3)
+    hinge = armature[:, 0, None, None] * axis[:, :, None] * axis[:, None, :]
+    added = jnp.where(flag.rotor_hinge[:, None, None], hinge, 0.0)
+    eye = jnp.eye(3, dtype=state.quat.dtype)
+    added = added + jnp.where(flag.rotor_ball[:, None, None], armature[:, 0, None, None] * eye, 0.0)
+    if flag.rotor_euler.any():
+        axes_a = math.quat_rotate(quat[a][:, None], model.joints.local_axes_a)
+        axes_b = math.quat_rotate(quat[b][:, None], model.joints.local_axes_b)
+        _, gradients = math.euler_angles(axes_a, axes_b, flag.universal)  # (J, 3, 3): row k = dq_k/dtheta_b
+        euler = jnp.where(flag.rotor_euler, armature, 0.0)
+        added = added + jnp.einsum("jk,jki,jkl->jil", euler, gradients, gradients)
+    both = jnp.zeros((n + 1, 3, 3), added.dtype).at[a].add(added).at[b].add(added)
+    return both[:n]
 
 
 def padded_control(structure: Structure, control: jnp.ndarray | None, dtype) -> jnp.ndarray:

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import constraints, integrator
+from dbdjax import constraints, integrator, math
 from dbdjax.collision import ContactSlots
 from dbdjax.colouring import write_back_slots
 from dbdjax.constraints import Family, joints
@@ -333,6 +333,13 @@ def restitution(
         return state
     families = constraints.restitution_families(model, contacts, h)
     table = body_table(model, state, h)
+    if model.structure.joint_rotor.array.any():
+        # The pass moves its contacts' bodies alone; each body's rotors (armature) resist its turn
+        # about their axes as they resist the joint's (`joints.rotor_inertia`).
+        rotation = math.quat_to_matrix(state.quat)
+        world = jnp.einsum("nij,nj,nkj->nik", rotation, model.bodies.inertia, rotation)
+        inverse = math.inverse3(world + joints.rotor_inertia(model, state))
+        table = table._replace(inv_inertia=with_world_row(inverse))
     dv, dw, _ = gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
                               list(normal))  # fmt: skip
     n = model.num_bodies

@@ -150,9 +150,11 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
         sign = np.where(b_moves, 1.0, -1.0)[:, None, None]
         separation = sign * point  # p_b - p_a
         directions = contact_family.row_directions(slots.normal)  # (C, P, 3, 3)
-        # the gap (p_b - p_a) . n (84) and the slip in the plane (89), as the sweeps measure them
+        # the gap (p_b - p_a) . n (84) less the depth the point may keep this substep, and the slip
+        # in the plane (89), as the sweeps measure them
         error = jnp.einsum("cpki,cpi->cpk", directions, separation - slots.offset)
-        error = error.at[..., 0].set(jnp.einsum("cpi,cpi->cp", directions[..., 0, :], separation))
+        gap = jnp.einsum("cpi,cpi->cp", directions[..., 0, :], separation)
+        error = error.at[..., 0].set(gap + slots.allowed_depth)
         jacobian = sign[..., None] * jnp.concatenate([directions, math.cross(arm[..., None, :], directions)], -1)
         regularisation = 1.0 / (HOLD * jnp.where(usable, mass[moving], 1.0))[:, None, None]  # finite off the forest
         normal_row = np.arange(3) == 0
