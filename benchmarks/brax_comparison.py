@@ -127,6 +127,7 @@ def brax_engine(xml: Path, backend: str) -> Engine:
         world_inertia = rotation @ inertia.i @ jnp.swapaxes(rotation, -1, -2)
         kinetic = 0.5 * jnp.sum(inertia.mass * jnp.sum(vel**2, -1))
         kinetic += 0.5 * jnp.sum(jnp.einsum("ni,nij,nj->n", state.xd.ang, world_inertia, state.xd.ang))
+        kinetic += 0.5 * jnp.sum(system.dof.armature * state.qd**2)  # the rotors', as dbdjax's `energy` counts them
         return kinetic - jnp.sum(inertia.mass * (pos @ gravity))
 
     def joint_gap(state):

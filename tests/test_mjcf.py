@@ -81,21 +81,47 @@ def test_ant_keeps_its_joints_together_under_random_control():
     assert float(jnp.max(diagnostics.joint_gaps(model, trajectory))) < 0.05
 
 
-def test_dropped_ant_with_armature_gains_no_energy_at_four_substeps():
-    # Brax's ant (armature 1 on every hinge: 40x the hips' own joint-space inertia, 120x the ankles')
-    # with its ankles' ranges widened to hold the build pose (in ant.xml the ankles start 30 degrees
-    # outside their range, and correcting that in one substep is a kick of its own). Zero control,
-    # dropped from the build pose: contacts and joint damping only take energy out. Before the
-    # rotor rows' held step counted the joint point's open gap (rows.angular_row), this ant gained
-    # 6.7 J -> 2,352 J by step 20 and tore apart (gaps 0.62 m); now 6.7 -> -1.7 J, gap 3.2 mm.
+def _dropped_ant(**finalize):
+    """Brax's ant (armature 1 on every hinge: 40x the hips' own joint-space inertia, 120x the ankles')
+    with its ankles' ranges widened to hold the build pose (in ant.xml the ankles start 30 degrees
+    outside their range, and correcting that in one substep is a kick of its own), dropped from the
+    build pose with zero control for 100 steps: (model, start, trajectory, energy (100,), its
+    rotors' share (100,))."""
     xml = (ASSETS / "ant.xml").read_text().replace('range="30 70"', 'range="-70 70"')
     xml = xml.replace('range="-70 -30"', 'range="-70 70"')
-    model = dbd.load_mjcf(xml, substeps=4, iterations=4)
-    _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), jnp.zeros((100, model.num_controls)))
-    energy = np.asarray(jax.vmap(lambda state: diagnostics.energy(model, state))(trajectory))
-    start = float(diagnostics.energy(model, dbd.init(model)))
-    assert energy.max() < start + 0.1
+    model = dbd.load_mjcf(xml, **finalize)
+    start = dbd.init(model)
+    _, trajectory = jax.jit(dbd.rollout)(model, start, jnp.zeros((100, model.num_controls)))
+    energy = np.asarray(diagnostics.energy(model, trajectory))
+    rotors = np.asarray(diagnostics.rotor_energy(model, trajectory))
+    return model, start, trajectory, energy, rotors
+
+
+def test_dropped_ant_with_armature_gains_no_energy_at_four_substeps():
+    # Contacts and joint damping only take energy out. Before the rotor rows' held step counted the
+    # joint point's open gap (rows.angular_row), this ant gained 6.7 J -> 2,352 J by step 20 and tore
+    # apart (gaps 0.62 m); now 6.7 -> -1.7 J, gap 3.2 mm, in its bodies. Its rotors are another
+    # matter (session 34, once `energy` counted them): the sweeps leave them 106 J at landing
+    # (step 38; 1 x 4: 95 J, 4 x 32: 62 J), which the tree solve does not (the test below).
+    model, start, trajectory, energy, rotors = _dropped_ant(substeps=4, iterations=4)
+    print(f"\nrotors' energy at most {rotors.max():.1f} J")
+    assert (energy - rotors).max() < float(diagnostics.energy(model, start)) + 0.1
     assert float(jnp.max(diagnostics.joint_gaps(model, trajectory))) < 0.02
+
+
+def test_dropped_ant_with_armature_gains_no_energy_with_its_rotors_under_the_tree_solve():
+    # The same drop with tree_solve (1 sweep at 4 substeps): the whole solve takes the rotor rows
+    # with the joints and contacts, and the rotors' energy stays under 0.7 J (sweeps alone: 106 J).
+    model, start, _, energy, rotors = _dropped_ant(substeps=4, iterations=1, tree_solve=True)
+    print(f"\nrotors' energy at most {rotors.max():.2f} J")
+    assert energy.max() < float(diagnostics.energy(model, start)) + 0.1
+
+
+@pytest.mark.slow  # a known defect, kept as its reproduction: it fails until that is fixed
+@pytest.mark.xfail(strict=True, reason="the sweeps leave the ant's rotors 106 J at landing (session 34)")
+def test_dropped_ant_gains_no_energy_with_its_rotors_under_the_sweeps():
+    model, start, _, energy, _ = _dropped_ant(substeps=4, iterations=4)
+    assert energy.max() < float(diagnostics.energy(model, start)) + 0.1
 
 
 def test_hinges_through_one_point_at_other_angles_still_load_as_a_ball_joint():
