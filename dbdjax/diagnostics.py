@@ -6,15 +6,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from dbdjax import math
+from dbdjax import integrator, math
 from dbdjax.constraints import joints, rows, targets
 from dbdjax.constraints.rows import BodyPair
 from dbdjax.model import PLANAR, SLIDER, Model, State
-
-
-def _world_inertia(model: Model, state: State) -> jnp.ndarray:
-    rotation = math.quat_to_matrix(state.quat)
-    return jnp.einsum("...nij,nj,...nkj->...nik", rotation, model.bodies.inertia, rotation)
 
 
 def joint_gaps(model: Model, state: State) -> jnp.ndarray:
@@ -67,7 +62,7 @@ def linear_momentum(model: Model, state: State) -> jnp.ndarray:
 
 def angular_momentum(model: Model, state: State) -> jnp.ndarray:
     """Total angular momentum about the world origin (kg m^2/s), (..., 3)."""
-    spin = math.matvec(_world_inertia(model, state), state.ang_vel)
+    spin = math.matvec(integrator.world_inertia(model, state), state.ang_vel)
     orbital = math.cross(state.pos, model.bodies.mass[:, None] * state.vel)
     return jnp.sum(spin + orbital, axis=-2)
 
@@ -77,7 +72,7 @@ def energy(model: Model, state: State) -> jnp.ndarray:
     (armature, `rotor_energy`), as MuJoCo counts its joint-space inertia."""
     mass = model.bodies.mass
     kinetic = 0.5 * jnp.sum(mass * math.dot(state.vel, state.vel), axis=-1)
-    spin = math.matvec(_world_inertia(model, state), state.ang_vel)
+    spin = math.matvec(integrator.world_inertia(model, state), state.ang_vel)
     kinetic = kinetic + 0.5 * jnp.sum(math.dot(state.ang_vel, spin), axis=-1)
     potential = -jnp.sum(mass * math.dot(state.pos, model.gravity), axis=-1)
     return kinetic + potential + rotor_energy(model, state)

@@ -97,6 +97,12 @@ def displaced_quat(quat: jnp.ndarray, rotation: jnp.ndarray) -> jnp.ndarray:
     return math.quat_normalize(math.quat_multiply(math.quat_exp(rotation), quat))
 
 
+def world_inertia(model: Model, state: State) -> jnp.ndarray:
+    """World-frame inertia of every body at its pose, (..., N, 3, 3): R I R^T."""
+    rotation = math.quat_to_matrix(state.quat)
+    return jnp.einsum("...nij,nj,...nkj->...nik", rotation, model.bodies.inertia, rotation)
+
+
 def inverse_inertia(model: Model, predicted: State, h: float) -> jnp.ndarray:
     """World-frame inverse inertia of every body at the predicted pose, (N, 3, 3).
 
@@ -108,7 +114,7 @@ def inverse_inertia(model: Model, predicted: State, h: float) -> jnp.ndarray:
     inv_world = jnp.einsum("nij,nj,nkj->nik", rotation, inv_moments, rotation)
     if not model.options.velocity_dependent_inertia:
         return inv_world
-    world = jnp.einsum("nij,nj,nkj->nik", rotation, model.bodies.inertia, rotation)
+    world = world_inertia(model, predicted)
     spin = h * predicted.ang_vel
     momentum = jnp.einsum("nij,nj->ni", world, spin)
     effective = world - math.skew(momentum) + world @ math.skew(spin)

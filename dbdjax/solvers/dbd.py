@@ -336,9 +336,7 @@ def restitution(
     if model.structure.joint_rotor.array.any():
         # The pass moves its contacts' bodies alone; each body's rotors (armature) resist its turn
         # about their axes as they resist the joint's (`joints.rotor_inertia`).
-        rotation = math.quat_to_matrix(state.quat)
-        world = jnp.einsum("nij,nj,nkj->nik", rotation, model.bodies.inertia, rotation)
-        inverse = math.inverse3(world + joints.rotor_inertia(model, state))
+        inverse = math.inverse3(integrator.world_inertia(model, state) + joints.rotor_inertia(model, state))
         table = table._replace(inv_inertia=with_world_row(inverse))
     dv, dw, _ = gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
                               list(normal))  # fmt: skip
