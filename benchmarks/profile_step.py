@@ -152,7 +152,7 @@ def parts(model, state, control_range, repeats: int) -> dict:
     control = _controls(control_range, (1,))[0]
     predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)
-    _, _, normal = solver.solve(model, predicted, control, slots, h, start=state)
+    _, _, normal, _ = solver.solve(model, predicted, control, slots, h, start=state)
     functions = {
         "predict": (jax.jit(lambda s, c: integrator.predict(model, s, h, c)), (state, control)),
         "detect": (jax.jit(lambda s, p: collision.detect(model, s, p, h)), (state, predicted)),

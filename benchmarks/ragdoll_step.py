@@ -91,7 +91,7 @@ def breakdown(substeps: int, iterations: int) -> dict:
         state, control = dbd.init(model), jnp.zeros(model.num_controls)
         predicted = integrator.predict(model, state, h, control)
         slots = collision.detect(model, state, predicted, h)
-        _, _, normal = solver.solve(model, predicted, control, slots, h)
+        _, _, normal, _ = solver.solve(model, predicted, control, slots, h)
         key = "" if floor else "no_floor_"
         parts[key + "solve_ms"] = best_ms(dbd.jit(lambda p, s, c, m=model, h=h: solver.solve(m, p, c, s, h)),
                                           predicted, slots, control)  # fmt: skip

@@ -5,8 +5,9 @@ step(model, state, control):
     solver="dbd":
     X*, V*  = integrator.predict(model, state, h)                  DBD (21)-(24)
     slots   = collision.detect(model, state, X*, h)                fixed shape, inactive masked
-    dX, lam = solvers.dbd.solve(model, X*, control, slots, h, X)   Algorithm 1, (45)-(52), (84)-(93)
+    dX, lam, r = solvers.dbd.solve(model, X*, control, slots, h, X)  Algorithm 1, (45)-(52), (84)-(93)
     state   = integrator.apply(X*, dX, h)                          (36)-(39)
+    state   = solvers.dbd.rotor_momentum(model, state, r, h)       velocity pass: rotors' unpaid spin
     state   = solvers.dbd.restitution(model, state, slots, lam, h) velocity pass (SI 2.1.4)
     solver="impulse":
     X*, V*  = solvers.impulse.predict(model, state, h)             SI (12): V* = V + h M^-1 F_ext
@@ -63,8 +64,10 @@ def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -
         return impulse.integrate(state, predicted, velocity, spin, impulses, h)
     predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)
-    displacement, rotation, normal_multipliers = dbd.solve(model, predicted, control, slots, h, start=state)
+    displacement, rotation, normal_multipliers, rotor_excess = dbd.solve(model, predicted, control, slots, h,
+                                                                         start=state)  # fmt: skip
     state = integrator.apply(predicted, displacement, rotation, h)
+    state = dbd.rotor_momentum(model, state, rotor_excess, h)
     return dbd.restitution(model, state, slots, normal_multipliers, h)
 
 

@@ -251,7 +251,7 @@ def test_gradients_through_contact_are_finite(scene, float64):
         assert np.all(np.isfinite(np.asarray(leaf)))
 
 
-@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+@pytest.mark.parametrize("solver", ["dbd", pytest.param("impulse", marks=pytest.mark.slow)])  # impulse: 28 s
 def test_gradient_of_a_capsule_lying_still_on_the_floor_is_finite_in_float32(solver):
     """A capsule lying on the plane, touching it along its length: its two contact points do not
     slip, and the friction step's effective mass |s|^2 / (s . W s) had a float32 gradient that

@@ -100,27 +100,23 @@ def _dropped_ant(**finalize):
 def test_dropped_ant_with_armature_gains_no_energy_at_four_substeps():
     # Contacts and joint damping only take energy out. Before the rotor rows' held step counted the
     # joint point's open gap (rows.angular_row), this ant gained 6.7 J -> 2,352 J by step 20 and tore
-    # apart (gaps 0.62 m); now 6.7 -> -1.7 J, gap 3.2 mm, in its bodies. Its rotors are another
-    # matter (session 34, once `energy` counted them): the sweeps leave them 106 J at landing
-    # (step 38; 1 x 4: 95 J, 4 x 32: 62 J), which the tree solve does not (the test below).
+    # apart (gaps 0.62 m). Then its bodies kept their energy but its rotors took 106 J at landing
+    # (step 38; 1 x 4: 95 J, 4 x 32: 62 J): the sweeps leave a heavy rotor's row unconverged beside
+    # a foot's contact, and the light bodies' rate, which is the rotor's, had no impulse behind it.
+    # The rotor pass (joints.project_rotor_momentum) takes that back: rotors at most 0.32 J, the
+    # total never above its start (measured), as under the tree solve (below: 0.66 J).
     model, start, trajectory, energy, rotors = _dropped_ant(substeps=4, iterations=4)
-    print(f"\nrotors' energy at most {rotors.max():.1f} J")
-    assert (energy - rotors).max() < float(diagnostics.energy(model, start)) + 0.1
+    print(f"\nrotors' energy at most {rotors.max():.2f} J, total at most {energy.max():.2f} J")
+    assert energy.max() < float(diagnostics.energy(model, start)) + 0.1
     assert float(jnp.max(diagnostics.joint_gaps(model, trajectory))) < 0.02
 
 
+@pytest.mark.slow  # 38 s; the tree solve landing an ant with its rotors counted stays in CI (test_tree.py)
 def test_dropped_ant_with_armature_gains_no_energy_with_its_rotors_under_the_tree_solve():
     # The same drop with tree_solve (1 sweep at 4 substeps): the whole solve takes the rotor rows
-    # with the joints and contacts, and the rotors' energy stays under 0.7 J (sweeps alone: 106 J).
+    # with the joints and contacts, and the rotors' energy stays under 0.7 J.
     model, start, _, energy, rotors = _dropped_ant(substeps=4, iterations=1, tree_solve=True)
     print(f"\nrotors' energy at most {rotors.max():.2f} J")
-    assert energy.max() < float(diagnostics.energy(model, start)) + 0.1
-
-
-@pytest.mark.slow  # a known defect, kept as its reproduction: it fails until that is fixed
-@pytest.mark.xfail(strict=True, reason="the sweeps leave the ant's rotors 106 J at landing (session 34)")
-def test_dropped_ant_gains_no_energy_with_its_rotors_under_the_sweeps():
-    model, start, _, energy, _ = _dropped_ant(substeps=4, iterations=4)
     assert energy.max() < float(diagnostics.energy(model, start)) + 0.1
 
 

@@ -15,7 +15,9 @@ import pytest
 import dbdjax as dbd
 from dbdjax import diagnostics
 from dbdjax import math as dm
+from dbdjax.constraints import joints
 from dbdjax.model import GIMBAL, JOINT_KIND_NAMES, UNIVERSAL
+from dbdjax.solvers import dbd as dbd_solver
 
 quick_jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 
@@ -249,6 +251,36 @@ def test_armature_on_a_joint_between_free_bodies_spins_their_relative_motion_as_
     ours = dm.quat_twist_angle(relative, model.joints.local_axis_a[0])
     assert float(np.max(np.abs(np.asarray(ours) - np.array(angles)))) < 1e-5
     assert abs(angles[-1]) > 0.4
+
+
+@pytest.mark.parametrize(
+    ("excess", "expected"),
+    [(0.01, "merged"), (-0.01, "unchanged"), (0.05, "stopped"), (0.0, "unchanged")],
+    ids=["slower", "faster", "past-zero", "converged"],
+)  # fmt: skip
+def test_rotor_pass_takes_back_unpaid_spin_at_the_merged_rate_and_never_adds_any(float64, excess, expected):
+    # A light bob (0.1 kg, 0.2 m below its hinge, inertia 0.001) on a hinge with armature 1 spinning
+    # at 2 rad/s. The sweeps left the rotor row a residual `excess` (rad): the rotor's momentum says
+    # 2 - excess / h. Rotor and bob meet at 2 - s excess / h, s = a w / (1 + a w), w = 1 / (I + m d^2)
+    # the bob's response about the hinge with its point held; that rate is taken only toward zero.
+    b = dbd.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    bob = b.add_body(pos=(0, 0, 0.8), mass=0.1, inertia=(0.001, 0.001, 0.001), ang_vel=(2.0, 0, 0), vel=(0, 0.4, 0))
+    b.add_armature(b.add_hinge_joint(dbd.WORLD, bob, anchor=(0, 0, 1), axis=(1, 0, 0)), 1.0)
+    h = 0.01
+    model = b.finalize(dt=h)
+    pair = np.array([model.num_bodies, bob])  # (world, bob): the joint's (a, b)
+    bodies = jax.tree.map(lambda column: column[pair], dbd_solver.body_table(model, dbd.init(model), h))
+    joint = jax.tree.map(lambda x: x[0], model.joints)
+    flag = jax.tree.map(lambda x: x[0], joints.flags(model.structure))
+    dv, dw, _ = joints.project_rotor_momentum(joint, flag, jnp.array([excess, 0.0, 0.0]), bodies, jnp.zeros(3), h,
+                                              joints.rows_in_use(model.structure))  # fmt: skip
+    share = 1.0 / (1.0 + (0.001 + 0.1 * 0.2**2))  # a w / (1 + a w) with a = 1
+    rate = 2.0 + float(dw[1, 0])
+    wanted = {"merged": 2.0 - share * excess / h, "unchanged": 2.0, "stopped": 0.0}[expected]
+    assert rate == pytest.approx(wanted, rel=1e-9, abs=1e-12)
+    point_speed = dv[1] + jnp.cross(dw[1], jnp.array([0.0, 0.0, 0.2]))  # the hinge point, 0.2 m above the bob
+    assert float(jnp.max(jnp.abs(point_speed))) < 1e-12
+    assert float(jnp.max(jnp.abs(dw[1, 1:]))) < 1e-12
 
 
 # ----------------------------------------------------------------------------- gradients

@@ -178,6 +178,8 @@ def test_mjcf_model_built_past_its_limits_starts_no_faster_than_mujoco(name):
     assert float(jnp.max(jnp.linalg.norm(state.ang_vel, axis=-1))) > 5.0
 
 
+@pytest.mark.slow  # 59 s; the ant built past its limits against MuJoCo (below) and the soft
+# limit's gradient stay in CI
 def test_dropped_humanoid_gains_no_energy_with_soft_limits():
     # Zero control, 1 s from the build pose at 1 substep x 4 iterations (brax_comparison.py's
     # accuracy task): contacts, joint damping and the limits' dampers only take energy out. With

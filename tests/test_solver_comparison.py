@@ -116,6 +116,7 @@ def test_traced_time_step_gives_the_static_time_step_numbers():
         np.testing.assert_allclose(np.asarray(final.vel), np.asarray(reference.vel), atol=1e-4)
 
 
+@pytest.mark.slow  # 30 s; a check of the benchmark's Brax scenes, not of the engine
 def test_brax_mjcf_of_each_scene_has_its_bodies_masses_and_start(built):
     """The MJCF written for Brax: one link per dbdjax body, in order, with its mass and principal
     moments, at its start position (forward kinematics of the initial q)."""

@@ -115,6 +115,7 @@ def ball_tree(initial_guess):
     return b.finalize(dt=1 / 60, iterations=300, initial_guess=initial_guess)
 
 
+@pytest.mark.slow  # 29 s; the guess's exactness (above) stays in CI
 def test_tree_guess_moves_the_converged_solution_only_at_second_order(float64):
     # The constraints' solution set is a manifold, so where the non-linear iterations end depends on
     # where they start; a correct linear guess shifts it only at second order in the correction.
@@ -131,7 +132,7 @@ def _shift_of_the_converged_end(make_model, settings, seed: int) -> list[float]:
         for setting in settings:
             model = make_model(setting)
             predicted = _displaced(dbd.init(model), np.random.default_rng(seed), scale)
-            dx, dtheta, _ = dbd_solver.solve(model, predicted, None, (), 1 / 60)
+            dx, dtheta, _, _ = dbd_solver.solve(model, predicted, None, (), 1 / 60)
             after = integrator.apply(predicted, dx, dtheta, 1 / 60)
             assert float(jnp.max(dbd.diagnostics.joint_gaps(model, after))) < 1e-9
             ends.append(np.concatenate([np.asarray(dx), np.asarray(dtheta)]))
@@ -187,6 +188,7 @@ def test_tree_holds_universal_and_gimbal_points(float64):
     assert gaps[1] < 0.03 * gaps[0]  # a tenth of the displacement: about a hundredth of the gap
 
 
+@pytest.mark.slow  # 50 s; the heavy-rotor pendulum's match with converged sweeps (below) stays in CI
 def test_tree_solve_moves_where_the_sweeps_converge_only_at_second_order(float64):
     # The points' solution set is a manifold, so where the iterations end depends on the path; with
     # a correct linearisation the direct steps shift that end only at second order in the
@@ -354,6 +356,9 @@ def test_tree_solve_closes_what_its_linearisation_leaves_of_the_landing_ants_joi
     assert gaps.max() < 0.2e-3, gaps.max()
 
 
+_step = jax.jit(dbd.step)  # the model an argument: the saved states at one substep share one compile
+
+
 def _step_a_saved_ant(name, substeps=1, saved_control=True):
     """Brax's ant at dbd-tree-1 (1 sweep, tree_solve; 1 substep unless asked) from a state and
     control saved in tests/assets/<name>.npz (or zero control): (model, that state, the state one
@@ -362,7 +367,7 @@ def _step_a_saved_ant(name, substeps=1, saved_control=True):
     saved = np.load(ASSETS / f"{name}.npz")
     state = dbd.State(**{field: jnp.asarray(saved[field]) for field in ("pos", "quat", "vel", "ang_vel")})
     control = jnp.asarray(saved["control"]) if saved_control else jnp.zeros(model.num_controls)
-    return model, state, jax.jit(lambda s, c: dbd.step(model, s, c))(state, control)
+    return model, state, _step(model, state, control)
 
 
 def test_tree_solve_takes_its_second_solve_where_the_first_was_when_landing_feet_let_go():
@@ -450,6 +455,7 @@ def _settled_sag(model, seconds=5.0):
     return np.diff(np.concatenate([[0.0], heading])), float(jnp.abs(final.ang_vel).max())
 
 
+@pytest.mark.slow  # 40 s; the drive's torque limit in the direct solve (below) stays in CI
 def test_tree_solve_holds_a_driven_arm_at_its_static_sag(float64):
     # The whole-joint solve takes the drives (DBD 9) as spring rows beside the points: a horizontal
     # arm of three links on a hinge, a ball and a universal joint settles where each drive's torque
@@ -477,6 +483,8 @@ def test_tree_solve_keeps_a_drive_within_its_torque_limit(float64):
     assert abs(ends["tree"][0] - ends["sweeps"][0]) < 1e-5
 
 
+@pytest.mark.slow  # 135 s (compiling its float64 grad); the FD check of gradients through the
+# tree solve's contact rows (test_tree_contacts.py) stays in CI
 def test_gradients_through_a_saturated_drive_beside_an_unlimited_one_match_finite_differences(float64):
     # A two-link arm: the root's drive at its torque limit (3 N m against the links' 19.6 N m), the
     # elbow's unlimited (its bound inf). The active-set step reads the bound only where a drive is

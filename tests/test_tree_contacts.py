@@ -26,7 +26,7 @@ def contact_force(model, state, control=None):
     h = model.options.dt / model.options.substeps
     predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)
-    _, _, normal = dbd_solver.solve(model, predicted, control, slots, h, start=state)
+    _, _, normal, _ = dbd_solver.solve(model, predicted, control, slots, h, start=state)
     return sum(jnp.sum(n) for n in normal) / h**2
 
 

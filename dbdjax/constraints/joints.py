@@ -397,6 +397,111 @@ def rotor_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair,
     return error, jnp.eye(3, dtype=error.dtype)
 
 
+def rotor_excess(joint: Joints, flag: JointFlags, target: Targets, bodies: BodySet, multipliers: jnp.ndarray,
+                 h: float, rows: frozenset[str]) -> jnp.ndarray:  # fmt: skip
+    """(3,) how far the sweeps left each rotor coordinate of one joint past where its rotor's own
+    momentum carries it: r = c + lambda / armature at X* + dX (rad, m; a ball's: a world rotation
+    vector), c the rotor row's error (`rotor_error`) and lambda its multiplier. The rotor row is a
+    spring with k h^2 = armature (`project`), so r is its residual per unit armature: 0 where the
+    sweeps converged. r / h is spin the bodies' motion gives the rotor with no impulse behind it
+    (`project_rotor_momentum` takes it back). 0 for the degrees of freedom without armature.
+    bodies: the joint's two bodies with the solve's displacements; multipliers: (NUM_MULTIPLIERS,)."""
+    pair = BodyPair.of(bodies)
+    armature = jnp.where(flag.rotor_ball, joint.armature[0], joint.armature)  # (3,) per degree of freedom
+    per_armature = multipliers[ROTOR : ROTOR + 3] / jnp.where(armature > 0.0, armature, 1.0)
+    first = jnp.arange(3) == 0
+    excess = jnp.zeros(3, pair.dx_a.dtype)
+    for kind, active in (("rotor_hinge", flag.rotor_hinge & first), ("rotor_euler", flag.rotor_euler),
+                         ("rotor_ball", flag.rotor_ball)):  # fmt: skip
+        if kind in rows:
+            error, _ = rotor_rows(joint, flag, target, pair, kind, h, rows)
+            excess = jnp.where(active, error + per_armature, excess)
+    if "rotor_slider" in rows:
+        reference = slider_travel(joint, flag, _unmoved(pair))[0] if target.reference is None else target.reference[1]
+        error = rotor_error(joint, target, 0, slider_travel(joint, flag, pair)[0] - reference, h)
+        excess = jnp.where(flag.rotor_slider & first, error + per_armature, excess)
+    return excess
+
+
+def project_rotor_momentum(joint: Joints, flag: JointFlags, excess: jnp.ndarray, bodies: BodySet,
+                           multipliers: jnp.ndarray, h: float, rows: frozenset[str]):  # fmt: skip
+    """The rotor pass of one joint, after the position solve. The rotor has no state of its own:
+    its rate is the rate qdot of its coordinate that the bodies' velocities give. Where the sweeps
+    left its row unconverged (`rotor_excess` r), the rotor's momentum says qdot - r / h; rotor and
+    bodies (effective inertia 1 / w along the coordinate, w the row's held response) meet at
+    their momentum-weighted rate, qdot - s r / h with s = armature w / (1 + armature w) (an
+    inelastic merge; s = 1 for a rotor far heavier than its bodies, about armature w for a light
+    one, where the bodies' rate stands). That rate is taken only toward zero, into [0, qdot]: the
+    pass takes spin back and never gives any (a ball's relative angular velocity w: to the point
+    of the segment [0, w] nearest the merged one).
+
+    Why: a rotor of armature far above its bodies' inertia (Brax's ant: 1 kg m^2, 40-120x its
+    legs') is a stiff row between light bodies, and Gauss-Seidel sweeps leave what it shares with
+    a contact or a limit unconverged; the light bodies then carry a rate the rotor's impulse does
+    not account for, and the rotor's energy 1/2 armature qdot^2 takes it: the ant dropped with
+    zero control had 106 J in its rotors at landing (from 6.7 J), the exact solve (tree_solve)
+    0.66 J. Taken back whole (not only toward zero), the rotors kept spin a limit had stopped
+    in positions, and under random controls they ran away. The joint's point is held (its
+    relative velocity kept) as the rotor rows hold it.
+
+    bodies: the velocity view (vel/ang_vel after the solve, dx/dtheta this pass's changes so far;
+    poses at the end of the solve). excess: (3,) `rotor_excess`. Returns (dv (2, 3), dw (2, 3),
+    multipliers (3,))."""
+    pair = BodyPair.of(bodies)
+    still = _unmoved(pair)  # the pose; dx/dtheta are velocity changes here
+    quat_a, quat_b = still.current_quats()
+    gap, arm_a, arm_b = joint_points(joint, flag, still, quat_a, quat_b)
+    hold = row.point_hold(pair, arm_a, arm_b, jnp.zeros_like(gap), ~(flag.slider | flag.planar))
+    armature = jnp.where(flag.rotor_ball, joint.armature[0], joint.armature)  # (3,) per degree of freedom
+    lam = [multipliers[k] for k in range(3)]
+    rigid = lambda active: row.rigid(1.0, 0.0, active)  # noqa: E731
+    spin = pair.ang_vel_b - pair.ang_vel_a
+
+    def merged(rate, k, response):  # the rotor's and the bodies' momentum-weighted rate
+        share = armature[k] * response / (1.0 + armature[k] * response)
+        return rate - share * excess[k] / h
+
+    def toward_zero(rate, wanted):  # the change that takes rate to the point of [0, rate] nearest wanted
+        return jnp.clip(wanted, jnp.minimum(rate, 0.0), jnp.maximum(rate, 0.0)) - rate
+
+    def held_response(direction):
+        return row.held_inverse_mass(*row.row_inverse_mass(pair, direction, direction), hold)[0]
+
+    def angular(pair, hold, direction, change, k, active):
+        now = math.dot(direction, pair.dtheta_b - pair.dtheta_a)
+        pair, lam[k], hold = row.angular_row(pair, -direction, now - change, lam[k], rigid(active), 1.0, hold,
+                                             held_step=True)  # fmt: skip
+        return pair, hold
+
+    if "rotor_hinge" in rows:
+        axis = hinge_angle(joint, still)[1]
+        rate = math.dot(axis, spin)
+        change = toward_zero(rate, merged(rate, 0, held_response(axis)))
+        pair, hold = angular(pair, hold, axis, change, 0, flag.rotor_hinge)
+    if "rotor_euler" in rows:
+        gradients = _euler_angles(joint, flag, still, rows)[1]
+        for k in range(3):
+            rate = math.dot(gradients[k], spin)
+            change = toward_zero(rate, merged(rate, k, held_response(gradients[k])))
+            pair, hold = angular(pair, hold, gradients[k], change, k, flag.rotor_euler[k])
+    if "rotor_ball" in rows:
+        axes = jnp.eye(3, dtype=spin.dtype)
+        wanted = jnp.stack([merged(spin[k], k, held_response(axes[k])) for k in range(3)])
+        share = jnp.clip(math.dot(wanted, spin) / jnp.maximum(math.dot(spin, spin), 1e-30), 0.0, 1.0)
+        for k in range(3):
+            pair, hold = angular(pair, hold, axes[k], (share - 1.0) * spin[k], k, flag.rotor_ball)
+    if "rotor_slider" in rows:
+        _, axis, arm_a, arm_b = slider_travel(joint, flag, still)
+        rate = math.dot(axis, (pair.vel_b + math.cross(pair.ang_vel_b, arm_b))
+                        - (pair.vel_a + math.cross(pair.ang_vel_a, arm_a)))  # fmt: skip
+        now = math.dot(axis, (pair.dx_b + math.cross(pair.dtheta_b, arm_b))
+                       - (pair.dx_a + math.cross(pair.dtheta_a, arm_a)))  # fmt: skip
+        response = row.row_inverse_mass(pair, math.cross(arm_a, axis), math.cross(arm_b, axis), 1.0)[0]
+        change = toward_zero(rate, merged(rate, 0, response))
+        pair, lam[0] = row.positional_row(pair, -axis, arm_a, arm_b, now - change, lam[0], rigid(flag.rotor_slider))
+    return *pair.displacements(), jnp.stack(lam)
+
+
 def axle_misalignment(joint: Joints, quat_a, quat_b):
     """(c = axis_b x axis_a (3,), the unit bisector of the two axes (3,)): a hinge's axle alignment
     error (DBD 6 (73)-(80), SI 2.4.1; |c| = sin of (73)'s angle), locked across the bisector."""

@@ -358,6 +358,14 @@ def point_impulses(hold: PointHold, turn_a: jnp.ndarray, turn_b: jnp.ndarray) ->
     return -math.matvec(hold.solve, gap), gap
 
 
+def held_inverse_mass(inverse_mass, turn_a, turn_b, hold: PointHold) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(the held response w - s^T K^-1 s, the point impulse mu = -K^-1 s per unit step) of an
+    angular row whose response is w = `row_inverse_mass` (turn_a, turn_b its turns) with the joint's
+    point held: the Schur complement, >= 0 up to rounding (K^-1 is of a positive definite K)."""
+    point_impulse, gap = point_impulses(hold, turn_a, turn_b)
+    return jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0), point_impulse
+
+
 def angular_row(
     pair: BodyPair,
     direction: jnp.ndarray,
@@ -384,10 +392,8 @@ def angular_row(
     """
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     if hold is not None:
-        point_impulse, gap = point_impulses(hold, turn_a, turn_b)
+        held_mass, point_impulse = held_inverse_mass(inverse_mass, turn_a, turn_b, hold)
         if held_step is not False:  # True, or per joint (soft limits)
-            # the Schur complement; >= 0 up to rounding (K^-1 is of a positive definite K)
-            held_mass = jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0)
             inverse_mass = jnp.where(held_step, held_mass, inverse_mass)
             error = jnp.where(held_step, error + math.dot(point_impulse, hold.gap), error)  # the held slope
     drift = 0.0
