@@ -358,7 +358,7 @@ def rotor_momentum(model: Model, state: State, excess: jnp.ndarray | None, h: fl
     """The rotor pass after the position solve (`joints.project_rotor_momentum`), on `state` (the
     state after the substep's displacements were applied): the rotors' spin the sweeps gave with
     no impulse behind it (`excess`, (R, 3), of the joints `_rotor_joints`; None: nothing to do)
-    taken back, a few Gauss-Seidel sweeps over the rotor joints' own colouring."""
+    taken back in ROTOR_PASS_SWEEPS Gauss-Seidel sweeps over the rotor joints' own colouring."""
     if excess is None:
         return state
     nodes = _rotor_joints(model)
