@@ -397,6 +397,14 @@ def rotor_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair,
     return error, jnp.eye(3, dtype=error.dtype)
 
 
+def slider_rotor_row(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair, h: float):
+    """A slider's rotor row at the pair's configuration: (error (`rotor_error`), world axis, arm_a,
+    arm_b), the travel measured from its value at X* (`slider_travel`)."""
+    reference = slider_travel(joint, flag, _unmoved(pair))[0] if target.reference is None else target.reference[1]
+    travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
+    return rotor_error(joint, target, 0, travel - reference, h), axis, arm_a, arm_b
+
+
 def rotor_excess(joint: Joints, flag: JointFlags, target: Targets, bodies: BodySet, multipliers: jnp.ndarray,
                  h: float, rows: frozenset[str]) -> jnp.ndarray:  # fmt: skip
     """(3,) how far the sweeps left each rotor coordinate of one joint past where its rotor's own
@@ -417,8 +425,7 @@ def rotor_excess(joint: Joints, flag: JointFlags, target: Targets, bodies: BodyS
             error, _ = rotor_rows(joint, flag, target, pair, kind, h, rows)
             excess = jnp.where(active, error + per_armature, excess)
     if "rotor_slider" in rows:
-        reference = slider_travel(joint, flag, _unmoved(pair))[0] if target.reference is None else target.reference[1]
-        error = rotor_error(joint, target, 0, slider_travel(joint, flag, pair)[0] - reference, h)
+        error = slider_rotor_row(joint, flag, target, pair, h)[0]
         excess = jnp.where(flag.rotor_slider & first, error + per_armature, excess)
     return excess
 
@@ -724,10 +731,7 @@ def project(
             pair, -directions[0], error[0], lam[ROTOR], rotor_rule(0, flag.rotor_hinge), h, hold, held_step=True
         )
     if "rotor_slider" in rows:
-        still = _unmoved(pair)
-        reference = slider_travel(joint, flag, still)[0] if target.reference is None else target.reference[1]
-        travel, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
-        error = rotor_error(joint, target, 0, travel - reference, h)
+        error, axis, arm_a, arm_b = slider_rotor_row(joint, flag, target, pair, h)
         pair, lam[ROTOR] = row.positional_row(
             pair, -axis, arm_a, arm_b, error, lam[ROTOR], rotor_rule(0, flag.rotor_slider), h
         )

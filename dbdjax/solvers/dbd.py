@@ -363,15 +363,14 @@ def rotor_momentum(model: Model, state: State, excess: jnp.ndarray | None, h: fl
         return state
     nodes = _rotor_joints(model)
     structure = model.structure
-    table = structure.family_bodies()[0][nodes]
     rows = joints.rows_in_use(structure)
-    family = constraints.Family(
-        "rotor momentum", table, (jax.tree.map(lambda x: x[nodes], model.joints), excess),
-        jax.tree.map(lambda x: x[nodes], joints.flags(structure)),
-        lambda params, flag, bodies, lam: joints.project_rotor_momentum(params[0], flag, params[1], bodies, lam, h,
-                                                                        rows), 3,
-    )  # fmt: skip
-    colours = colouring.colour_groups([table], structure.num_bodies)
+    project = lambda params, flag, bodies, lam: joints.project_rotor_momentum(  # noqa: E731
+        params[0], flag, params[1], bodies, lam, h, rows)  # fmt: skip
+    every_joint = Family("rotor momentum", structure.family_bodies()[0], model.joints, joints.flags(structure),
+                         project, 3)  # fmt: skip
+    rotor_joints = constraints.gather(every_joint, nodes)
+    family = rotor_joints._replace(params=(rotor_joints.params, excess))
+    colours = colouring.colour_groups([family.bodies], structure.num_bodies)
     dv, dw, _ = gauss_seidel(colours, [family], body_table(model, state, h), ROTOR_PASS_SWEEPS,
                              [jnp.zeros((len(nodes), 3), state.pos.dtype)])  # fmt: skip
     n = model.num_bodies
