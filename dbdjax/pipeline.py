@@ -12,8 +12,9 @@ step(model, state, control):
     solver="impulse":
     X*, V*  = solvers.impulse.predict(model, state, h)             SI (12): V* = V + h M^-1 F_ext
     slots   = collision.detect(model, state, X*, h)                the same slots
-    dV, lam = solvers.impulse.solve(model, state, V*, ...)         sequential impulses, warm-started
-    state   = solvers.impulse.integrate(state, V*, dV, lam, h)     SI (12): X' = X + h (V* + dV)
+    dV, lam, r = solvers.impulse.solve(model, state, V*, ...)      sequential impulses, warm-started
+    V'      = solvers.dbd.rotor_momentum(model, (X, V* + dV), r, h)  the same rotor pass
+    state   = solvers.impulse.integrate((X, V'), lam, h)           SI (12): X' = X + h V'
 """
 
 from __future__ import annotations
@@ -60,8 +61,10 @@ def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -
     if model.options.solver == "impulse":
         predicted = impulse.predict(model, state, h, control)
         slots = collision.detect(model, state, predicted, h)
-        velocity, spin, impulses = impulse.solve(model, state, predicted, control, slots, h)
-        return impulse.integrate(state, predicted, velocity, spin, impulses, h)
+        velocity, spin, impulses, rotor_excess = impulse.solve(model, state, predicted, control, slots, h)
+        solved = impulse.solved_velocities(state, predicted, velocity, spin)
+        solved = dbd.rotor_momentum(model, solved, rotor_excess, h)
+        return impulse.integrate(solved, impulses, h)
     predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)
     displacement, rotation, normal_multipliers, rotor_excess = dbd.solve(model, predicted, control, slots, h,

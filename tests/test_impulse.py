@@ -475,6 +475,35 @@ def test_pendulum_with_armature_swings_at_the_period_of_body_plus_rotor_inertia(
     assert abs(measured - expected) / expected < 0.01
 
 
+@pytest.mark.parametrize("joint", ["hinge", "ball", "gimbal"])
+def test_rotor_residual_vanishes_where_the_sweeps_converge_and_not_before(float64, joint):
+    """`velocity_rows.rotor_excess`, what the rotor pass takes back, is h (J v + b + lambda / I_r):
+    0 once the sweeps have converged (a wrong sign or unit of the flywheel's impulse would leave it
+    at the size of the spin), not 0 after one sweep, where a heavy rotor on a light swinging bob
+    is still unconverged against the joint's point."""
+    b = dbd.ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
+    bob = b.add_body(pos=(0.3, 0.0, -0.8), mass=1.0, inertia=(0.004, 0.004, 0.004), ang_vel=(1.0, -2.0, 0.5),
+                     vel=(0.5, 0.3, -0.2))  # fmt: skip
+    if joint == "hinge":
+        pivot = b.add_hinge_joint(dbd.WORLD, bob, anchor=(0, 0, 0), axis=(0, 1, 0))
+    elif joint == "ball":
+        pivot = b.add_ball_joint(dbd.WORLD, bob, anchor=(0, 0, 0))
+    else:
+        pivot = b.add_gimbal_joint(dbd.WORLD, bob, anchor=(0, 0, 0), axes=[(1, 0, 0), (0, 1, 0), (0, 0, 1)])
+    b.add_armature(pivot, 0.5 if joint != "gimbal" else [0.5, 0.2, 0.3])
+    residuals = []
+    for iterations in (1, 400):
+        model = b.finalize(dt=1 / 60, iterations=iterations, solver="impulse")
+        state = dbd.init(model)
+        h = model.options.dt
+        predicted = impulse.predict(model, state, h, None)
+        *_, excess = impulse.solve(model, state, predicted, None, (), h)
+        residuals.append(float(jnp.max(jnp.abs(excess))))
+    print(f"\n{joint}: rotor residual after 1 sweep {residuals[0]:.3e}, after 400 {residuals[1]:.3e}")
+    assert residuals[0] > 1e-4
+    assert residuals[1] < 1e-10
+
+
 @pytest.mark.slow
 def test_universal_joint_gradient_on_impulse_matches_finite_differences(float64):
     """Through 12 steps of a universal joint with a hinge limit, a drive and armature (slow: the

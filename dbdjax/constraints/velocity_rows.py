@@ -546,6 +546,31 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     return *pair.displacements(), impulses
 
 
+def rotor_excess(joint_rows: JointRows, armature: jnp.ndarray, bodies: BodySet, impulses: jnp.ndarray,
+                 h: float) -> jnp.ndarray:  # fmt: skip
+    """(3,) what the sweeps left of one joint's rotor rows, in the units of the DBD solver's
+    `joints.rotor_excess` (rad or m; a ball's: a world rotation vector): h rho, with rho = J v + b +
+    lambda / I_r the rotor row's residual (rad/s or m/s, 0 where converged: module docstring, the
+    rotor row). rho is the rate the bodies carry past the flywheel's own, u = u* - lambda / I_r,
+    with no impulse behind it; `solvers.dbd.rotor_momentum` takes it back (the same pass as the
+    DBD solver's). 0 for the degrees of freedom without armature.
+
+    armature: (3,) the joint's (`Joints.armature`). bodies: the joint's two bodies with the
+    solve's velocity changes in dx, dtheta. impulses: (JOINT_IMPULSES,) at the end of the solve."""
+    pair = BodyPair.of(bodies)
+    scalars = joint_rows.scalars
+    lam = impulses[SCALARS][_HELD]
+    speed = _relative_speed(pair, scalars.linear[_HELD], scalars.angular_a[_HELD], scalars.angular_b[_HELD])
+    has = scalars.mass[_HELD] > 0.0  # an active rotor row (inactive rows have mass 0)
+    residual = jnp.where(has, speed + scalars.bias[_HELD] + lam / jnp.where(has, armature, 1.0), 0.0)
+    ball = joint_rows.rotor
+    ball_armature = armature[0]
+    is_ball = jnp.any(ball.mass != 0.0) & (ball_armature > 0.0)
+    ball_residual = (_relative_speed(pair, ball.linear, ball.angular_a, ball.angular_b) + ball.bias
+                     + impulses[ROTOR_BLOCK] / jnp.where(is_ball, ball_armature, 1.0))  # fmt: skip
+    return h * jnp.where(is_ball, ball_residual, residual)
+
+
 # ---------------------------------------------------------------------------------- contacts
 
 # Kept between substeps per point: lambda_n and the friction impulse as a world vector, so that a

@@ -264,7 +264,7 @@ def solve(
     substep's slots (collision.detect). h: substep (s). start: the state the substep began from
     (the joints' armature rows read the rotor's own motion from it; None: from the prediction).
     Also returns each contact group's normal multipliers lambda_n (C, P) (the restitution pass
-    reads which points pushed) and the rotor residuals (R, 3) of the joints `_rotor_joints`
+    reads which points pushed) and the rotor residuals (R, 3) of the joints `rotor_joints`
     (`joints.rotor_excess`, for `rotor_momentum`; None without such joints).
     """
     structure, options = model.structure, model.options
@@ -329,7 +329,7 @@ def solve(
     contact_lams = multipliers[len(all_families) - len(contacts) :]
     normal = tuple(lam.reshape(len(lam), -1, 4)[..., 0] for lam in contact_lams)
     excess = None
-    swept = _rotor_joints(model)
+    swept = rotor_joints(model)
     if swept.size:  # what the sweeps left of the rotor rows, for the rotor pass
         family = constraints.gather(all_families[0], swept)
         bodies = _fixed(table, family.bodies)._replace(dx=dx[family.bodies], dtheta=dtheta[family.bodies])
@@ -340,7 +340,7 @@ def solve(
     return dx[:n], dtheta[:n], normal, excess
 
 
-def _rotor_joints(model: Model) -> np.ndarray:
+def rotor_joints(model: Model) -> np.ndarray:
     """The joints with armature whose rotors the sweeps alone solve (static): with `tree_solve`,
     not the tree's, whose last direct solve takes the rotor rows exactly (`tree.angular_rows`)."""
     structure = model.structure
@@ -357,19 +357,21 @@ def _rotor_joints(model: Model) -> np.ndarray:
 def rotor_momentum(model: Model, state: State, excess: jnp.ndarray | None, h: float) -> State:
     """The rotor pass after the position solve (`joints.project_rotor_momentum`), on `state` (the
     state after the substep's displacements were applied): the rotors' spin the sweeps gave with
-    no impulse behind it (`excess`, (R, 3), of the joints `_rotor_joints`; None: nothing to do)
-    taken back in ROTOR_PASS_SWEEPS Gauss-Seidel sweeps over the rotor joints' own colouring."""
+    no impulse behind it (`excess`, (R, 3), of the joints `rotor_joints`; None: nothing to do)
+    taken back in ROTOR_PASS_SWEEPS Gauss-Seidel sweeps over the rotor joints' own colouring.
+    The impulse solver runs the same pass on its solved velocities at the start pose, with its
+    velocity rows' residuals (`velocity_rows.rotor_excess`)."""
     if excess is None:
         return state
-    nodes = _rotor_joints(model)
+    nodes = rotor_joints(model)
     structure = model.structure
     rows = joints.rows_in_use(structure)
     project = lambda params, flag, bodies, lam: joints.project_rotor_momentum(  # noqa: E731
         params[0], flag, params[1], bodies, lam, h, rows)  # fmt: skip
     every_joint = Family("rotor momentum", structure.family_bodies()[0], model.joints, joints.flags(structure),
                          project, 3)  # fmt: skip
-    rotor_joints = constraints.gather(every_joint, nodes)
-    family = rotor_joints._replace(params=(rotor_joints.params, excess))
+    gathered = constraints.gather(every_joint, nodes)
+    family = gathered._replace(params=(gathered.params, excess))
     colours = colouring.colour_groups([family.bodies], structure.num_bodies)
     dv, dw, _ = gauss_seidel(colours, [family], body_table(model, state, h), ROTOR_PASS_SWEEPS,
                              [jnp.zeros((len(nodes), 3), state.pos.dtype)])  # fmt: skip

@@ -10,7 +10,9 @@ One substep of h seconds (pipeline.substep with solver="impulse"):
         for each colour, in order:            the colouring of the DBD solver (Structure.colours)
             every node of each family at once (jax.vmap): its rows in turn, each impulse
             accumulated and clamped (SI (20)-(23), (32)-(33), (126); lambda_n >= 0)
-    V' = V* + dV,  X' = X + h V'              SI (12), `integrate`
+    V' = V* + dV                              `solved_velocities`
+    rotor pass on V' (solvers.dbd.rotor_momentum, with `solve`'s rotor residuals)
+    X' = X + h V'                             SI (12), `integrate`
 
 The colour sweep is `solvers.dbd.gauss_seidel` itself, fed velocity rows instead of positional
 ones: the BodySet fields dx, dtheta carry the velocity changes. Only velocities are solved; the
@@ -20,10 +22,12 @@ not projected away, which is the difference to DBD this solver exists to measure
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
-from dbdjax import integrator, math
+from dbdjax import constraints, integrator, math
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import Family
 from dbdjax.constraints import velocity_rows as velocity
@@ -78,12 +82,14 @@ def predict(model: Model, state: State, h: float, control: jnp.ndarray | None) -
 def solve(
     model: Model, state: State, predicted: State, control: jnp.ndarray | None, contacts: tuple[ContactSlots, ...],
     h: float,
-) -> tuple[jnp.ndarray, jnp.ndarray, tuple[jnp.ndarray, ...]]:  # fmt: skip
+) -> tuple[jnp.ndarray, jnp.ndarray, tuple[jnp.ndarray, ...], jnp.ndarray | None]:  # fmt: skip
     """Velocity changes (dv (N, 3), dw (N, 3)) that satisfy the velocity constraints from V*.
 
     state: the start of the substep (its pose is where the rows are taken; its impulses, or zeros
     for None, warm-start the solve). predicted: V* (`predict`). contacts: this substep's slots.
-    Returns dv, dw and every family's accumulated impulses (State.impulses' layout).
+    Returns dv, dw, every family's accumulated impulses (State.impulses' layout) and the rotor
+    residuals (R, 3) of the joints with armature (`velocity_rows.rotor_excess`, for
+    `solvers.dbd.rotor_momentum`; None without such joints).
     """
     structure, options = model.structure, model.options
     n = structure.num_bodies
@@ -108,21 +114,34 @@ def solve(
         impulses.append(lam)
     if not any(len(f.bodies) for f in prepared):
         zero = jnp.zeros((n, 3), dtype)
-        return zero, zero, tuple(impulses)
+        return zero, zero, tuple(impulses), None
     table = table._replace(dx=warm_dv, dtheta=warm_dw)  # the world's row stays 0: its inverse mass is 0
     if options.jacobi:
         dv, dw, impulses = dbd.jacobi(prepared, table, options.iterations, impulses)
     else:
         dv, dw, impulses = dbd.gauss_seidel(structure.colours, prepared, table, options.iterations, impulses)
+    excess = None
+    rotor_joints = dbd.rotor_joints(model)
+    if rotor_joints.size:  # what the sweeps left of the rotor rows, for the rotor pass
+        joint_family = constraints.gather(prepared[0], rotor_joints)
+        bodies = jax.tree.map(lambda column: column[joint_family.bodies], table._replace(dx=dv, dtheta=dw))
+        excess = jax.vmap(functools.partial(velocity.rotor_excess, h=h))(
+            joint_family.params, model.joints.armature[rotor_joints], bodies, impulses[0][rotor_joints]
+        )
     for f, family in enumerate(families):  # what the next substep starts from
         if family.store is not None and len(family.bodies):
             impulses[f] = jax.vmap(family.store)(prepared[f].params, impulses[f])
-    return dv[:n], dw[:n], tuple(impulses)
+    return dv[:n], dw[:n], tuple(impulses), excess
 
 
-def integrate(state: State, predicted: State, dv: jnp.ndarray, dw: jnp.ndarray, impulses, h: float) -> State:
-    """SI (12): V' = V* + dV, X' = X + h V', q' = exp(h w' / 2) q; the impulses are kept."""
-    vel = predicted.vel + dv
-    ang_vel = predicted.ang_vel + dw
-    return State(pos=state.pos + h * vel, quat=integrator.displaced_quat(state.quat, h * ang_vel), vel=vel,
+def solved_velocities(state: State, predicted: State, dv: jnp.ndarray, dw: jnp.ndarray) -> State:
+    """V' = V* + dV at the start pose X (where the rows were taken), for the rotor pass."""
+    return State(pos=state.pos, quat=state.quat, vel=predicted.vel + dv, ang_vel=predicted.ang_vel + dw)
+
+
+def integrate(solved: State, impulses, h: float) -> State:
+    """SI (12): X' = X + h V', q' = exp(h w' / 2) q, from `solved` (the start pose X, the solved
+    velocities V'); the impulses are kept."""
+    vel, ang_vel = solved.vel, solved.ang_vel
+    return State(pos=solved.pos + h * vel, quat=integrator.displaced_quat(solved.quat, h * ang_vel), vel=vel,
                  ang_vel=ang_vel, impulses=tuple(impulses))  # fmt: skip
