@@ -23,7 +23,8 @@ not the increment (Catto 2005, SI [3]). One update rule serves every row:
   rotor  armature I_r on a joint coordinate q with J v = qdot: a flywheel of inverse mass 1 / I_r
          on the row J v - u = 0, u = u* - lambda / I_r its speed after the impulses it gave the
          bodies, u* = qdot at the start of the substep + h tau / I_r (a torque actuator on q).
-         SI (20) with 1 / I_r added to K: the soft update with s = I_r and b = -u*
+         SI (20) with 1 / I_r added to K: the soft update with s = I_r and b = -u*; what the
+         sweeps leave of it (`rotor_excess`) the DBD solver's rotor pass takes back
 
 Inequality rows (contacts (42), limits (120)-(121)) clamp lambda >= 0 and bias a row that is
 not violated by C / h rather than beta C / h: the bodies may close the gap C within this substep
