@@ -117,7 +117,7 @@ def test_dropped_ant_under_the_impulse_solver_keeps_its_rotors_from_spinning_up(
     # 1 x 4 (brax_comparison's setting; 4 x 4: 109,626 J by step 54) and 32.9 J at 1 x 16. The same
     # rotor pass, fed the velocity rows' residuals (velocity_rows.rotor_excess), keeps them at most
     # 0.70 J and 0.37 J (measured), and at 1 x 16 the total never rises above its start. At 1 x 4
-    # the bodies still gain energy after landing (total up to 21 J: joint gaps of 36-58 mm pulled
+    # the bodies still gain energy after landing (total up to 21 J: joint gaps up to 65 mm pulled
     # shut by the Baumgarte bias; README), which only the rotors' bound covers here.
     _, _, _, energy, rotors = _dropped_ant(solver="impulse", substeps=1, iterations=4)
     print(f"\nimpulse 1 x 4: rotors' energy at most {rotors.max():.2f} J, total at most {energy.max():.2f} J")

@@ -172,11 +172,10 @@ def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet,
     _, arm_a, arm_b = row.anchor_points(pair, slots.local_a, slots.local_b, world[0], world[1], pair.quat_a,
                                         pair.quat_b)  # fmt: skip
     directions, turn_a, turn_b, coupling = _manifold(pair, slots.normal, arm_a, arm_b)
-    speed_a = pair.vel_a + pair.dx_a + math.cross(pair.ang_vel_a + pair.dtheta_a, arm_a)
-    speed_b = pair.vel_b + pair.dx_b + math.cross(pair.ang_vel_b + pair.dtheta_b, arm_b)
+    speed = row.relative_point_motion(pair, arm_a, arm_b, 1.0)  # (P, 3) b's points against a's
     bounce = jnp.where(slots.approach < -slow, slots.restitution, 0.0)
     target = jnp.maximum(-bounce * slots.approach, 0.0)
-    error = jnp.einsum("pi,pi->p", speed_b - speed_a, slots.normal) - target
+    error = jnp.einsum("pi,pi->p", speed, slots.normal) - target
     normal_coupling = coupling.reshape(points, 3, points, 3)[:, 0, :, 0]
     pushed = slots.active & (normal_multipliers > 0.0) & (jnp.diagonal(normal_coupling) > 0.0)
 

@@ -499,10 +499,8 @@ def project_rotor_momentum(joint: Joints, flag: JointFlags, excess: jnp.ndarray,
             pair, hold = angular(pair, hold, axes[k], (share - 1.0) * spin[k], k, flag.rotor_ball)
     if "rotor_slider" in rows:
         _, axis, arm_a, arm_b = slider_travel(joint, flag, still)
-        rate = math.dot(axis, (pair.vel_b + math.cross(pair.ang_vel_b, arm_b))
-                        - (pair.vel_a + math.cross(pair.ang_vel_a, arm_a)))  # fmt: skip
-        now = math.dot(axis, (pair.dx_b + math.cross(pair.dtheta_b, arm_b))
-                       - (pair.dx_a + math.cross(pair.dtheta_a, arm_a)))  # fmt: skip
+        rate = math.dot(axis, row.relative_point_motion(still, arm_a, arm_b, 1.0))  # the velocities alone
+        now = math.dot(axis, row.relative_point_motion(pair, arm_a, arm_b, 0.0))  # this pass's changes
         response = row.row_inverse_mass(pair, math.cross(arm_a, axis), math.cross(arm_b, axis), 1.0)[0]
         change = toward_zero(rate, merged(rate, 0, response))
         pair, lam[0] = row.positional_row(pair, -axis, arm_a, arm_b, now - change, lam[0], rigid(flag.rotor_slider))

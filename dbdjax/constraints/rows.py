@@ -213,6 +213,16 @@ def relative_turn(pair: BodyPair, h: float) -> jnp.ndarray:
     return h * (pair.ang_vel_b - pair.ang_vel_a) + (pair.dtheta_b - pair.dtheta_a)
 
 
+def relative_point_motion(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, h: float) -> jnp.ndarray:
+    """(..., 3) h (v_b + w_b x r_b - v_a - w_a x r_a) + (dx_b + dtheta_b x r_b - dx_a - dtheta_a x r_a):
+    how far the points at arm_a on a and arm_b on b move apart over h at V* and by dX, as
+    `relative_turn` for their turn (h = 1 in a velocity pass: their relative velocity; h = 0: the
+    part of dX alone). arm_a, arm_b: (..., 3) m, one pair of points or P of them."""
+    moved_a = pair.dx_a + math.cross(pair.dtheta_a, arm_a) + h * (pair.vel_a + math.cross(pair.ang_vel_a, arm_a))
+    moved_b = pair.dx_b + math.cross(pair.dtheta_b, arm_b) + h * (pair.vel_b + math.cross(pair.ang_vel_b, arm_b))
+    return moved_b - moved_a
+
+
 def soft_limit_scale(armature, inverse_mass):
     """m w = 1 + armature w: the soft limit's effective mass m = 1 / w + armature (the rotor's
     inertia on the row's coordinate included, as MuJoCo's joint-space mass) in units of 1 / w, the
@@ -563,9 +573,7 @@ def point_spring(
     compliance = jnp.where(rigid, 0.0, 1.0 / stiffness_h2)
     damping_ratio = jnp.where(rigid, 0.0, rule.damping_h / stiffness_h2)
     inverse_mass = point_inverse_mass(pair, arm_a, arm_b)
-    drift = h * (pair.vel_a + math.cross(pair.ang_vel_a, arm_a) - pair.vel_b - math.cross(pair.ang_vel_b, arm_b)) + (
-        pair.dx_a + math.cross(pair.dtheta_a, arm_a) - pair.dx_b - math.cross(pair.dtheta_b, arm_b)
-    )  # J (h V* + dX): how far the points moved apart this substep
+    drift = -relative_point_motion(pair, arm_a, arm_b, h)  # J (h V* + dX): how far the points moved apart
     system = compliance * eye + (1.0 + damping_ratio) * inverse_mass
     residual = compliance * multiplier + error + damping_ratio * drift
     solve, solvable = definite_inverse(system, rule.active)
