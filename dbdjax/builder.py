@@ -18,6 +18,7 @@ import numpy as np
 
 from dbdjax import colouring, host_math, shapes
 from dbdjax.collision import BOX, CAPSULE, PLANE, SPHERE, num_points
+from dbdjax.constraints import joints
 from dbdjax.model import (
     BALL,
     FIXED,
@@ -47,6 +48,24 @@ from dbdjax.model import (
 
 SOLVERS = ("dbd", "impulse")
 INITIAL_GUESSES = ("tree", "zero")
+
+
+def colour_classes(structure: Structure) -> list[int | np.ndarray]:
+    """The colouring's class of every family's nodes (`colouring.colour_groups`), in solver order:
+    each kind of joint (`joints.variants`) and each other family a class of its own, then the
+    contact groups one class together. So every joint colour projects one kind of joint: a colour
+    runs the kernels of each kind it holds once, however few of its joints are of that kind (Brax's
+    humanoid, 1 x 4, CPU: its hinges and its universal / gimbal joints mixed in 3 colours ran both
+    kinds' kernels 3 times a sweep; kind by kind, 1 colour of hinges and 3 of the others, a step
+    took 0.42 instead of 0.72 ms at batch 1 and 2.50 instead of 3.22 ms at batch 16)."""
+    tables = structure.family_bodies()
+    kinds = joints.variants(structure) if structure.num_joints else []
+    joint_class = np.zeros(structure.num_joints, np.int64)
+    for k, (members, _) in enumerate(sorted(kinds, key=lambda kind: kind[0][0])):  # in the order they were added
+        joint_class[members] = k
+    contacts = len(structure.contact_groups)
+    others = range(max(len(kinds), 1), max(len(kinds), 1) + len(tables) - 1 - contacts)
+    return [joint_class, *others, *[others.stop] * contacts]
 
 
 def _vector(value, size: int, what: str) -> np.ndarray:
@@ -1397,11 +1416,9 @@ class ModelBuilder:
             joint_soft_limits=StaticArray(np.asarray([j.limit_stiffness > 0.0 for j in js], dtype=bool)),
             joint_drive_limited=StaticArray(np.asarray([np.isfinite(j.drive_max_torque) for j in js], dtype=bool)),
         )
-        contacts = len(structure.contact_groups)  # contact groups in colours of their own (colouring.py)
-        contact_class = [0] * (len(structure.family_bodies()) - contacts) + [1] * contacts
         structure = dataclasses.replace(
             structure,
-            colours=colouring.colour_groups(structure.family_bodies(), n, classes=contact_class),
+            colours=colouring.colour_groups(structure.family_bodies(), n, classes=colour_classes(structure)),
             contact_colours=colouring.colour_groups([g.bodies.array for g in structure.contact_groups], n),
         )
         sh = self._shapes

@@ -40,30 +40,32 @@ def greedy_colouring(constraint_bodies: Sequence[Sequence[int]], num_bodies: int
 
 
 def colour_groups(
-    family_bodies: Sequence[np.ndarray], num_bodies: int, classes: Sequence[int] | None = None
+    family_bodies: Sequence[np.ndarray], num_bodies: int, classes: Sequence[int | np.ndarray] | None = None
 ) -> tuple[Colour, ...]:
     """Colour the nodes of every constraint family together.
 
     family_bodies: one (M_f, S_f) int table per family, the bodies each node moves (index
-    num_bodies = the world). classes: one class per family (default: all 0); nodes of different
-    classes never share a colour, and lower classes get the lower colours. Returns the colour
-    groups, each with its nodes per family and the gather table that writes the moved bodies back
-    (see `Colour`).
+    num_bodies = the world). classes: per family, one class for all its nodes or an (M_f,) int
+    array of one class per node (default: all 0); nodes of different classes never share a colour,
+    and lower classes get the lower colours. Returns the colour groups, each with its nodes per
+    family and the gather table that writes the moved bodies back (see `Colour`).
 
-    The solver projects every family present in a colour as one vmapped call, so the cost of an
-    iteration (and the size of the compiled program) grows with the number of (colour, family)
-    pairs, not only with the number of colours. The builder puts contact groups in a class of their
-    own: a ragdoll's 15 floor contacts, each on its own body, then fill one colour (two families)
-    instead of being spread over the joints' colours (up to colours x families calls).
+    The solver projects every family (every variant of a family: the joints by kind) present in a
+    colour as one vmapped call, so the cost of an iteration (and the size of the compiled program)
+    grows with the number of (colour, variant) pairs, not only with the number of colours. The
+    builder gives each family and each kind of joint a class of its own (`builder.colour_classes`),
+    and the contact groups one class together: a ragdoll's 15 floor contacts, each on its own body,
+    then fill one colour (two families) instead of being spread over the joints' colours.
     """
     classes = [0] * len(family_bodies) if classes is None else list(classes)
     if len(classes) != len(family_bodies):
         raise ValueError(f"colour_groups: {len(classes)} classes for {len(family_bodies)} families")
     nodes = [(f, m) for f, table in enumerate(family_bodies) for m in range(len(table))]
+    node_class = [int(np.broadcast_to(classes[f], (len(family_bodies[f]),))[m]) for f, m in nodes]
     colours = [0] * len(nodes)
     first = 0
-    for kind in sorted(set(classes)):
-        members = [k for k, (f, _) in enumerate(nodes) if classes[f] == kind]
+    for kind in sorted(set(node_class)):
+        members = [k for k, c in enumerate(node_class) if c == kind]
         local = greedy_colouring([family_bodies[nodes[k][0]][nodes[k][1]] for k in members], num_bodies)
         for k, colour in zip(members, local, strict=True):
             colours[k] = first + colour

@@ -84,8 +84,19 @@ def _project(family: Family, fixed: BodySet, dx, dtheta, multipliers):
     return moved_dx.reshape(-1, 3), moved_dtheta.reshape(-1, 3), multipliers
 
 
-def _runs(present: list[list[int]]) -> list[tuple[int, int]]:
-    """Consecutive colours with the same families present: [(first, stop), ...]."""
+def _variants(family: Family) -> tuple:
+    """(members, project) of each variant of `family` (the family whole where it has none)."""
+    return family.variants or ((np.arange(len(family.bodies)), family.project),)
+
+
+def _present(colour: Colour, families: list[Family]) -> list[tuple[int, int]]:
+    """(family, variant) of every variant with nodes in `colour`."""
+    return [(f, v) for f, family in enumerate(families) for v, (members, _) in enumerate(_variants(family))
+            if np.intersect1d(colour.nodes[f].array, members).size]  # fmt: skip
+
+
+def _runs(present: list[list[tuple[int, int]]]) -> list[tuple[int, int]]:
+    """Consecutive colours with the same variants present: [(first, stop), ...]."""
     runs: list[list[int]] = []
     for c, fs in enumerate(present):
         if runs and present[runs[-1][0]] == fs:
@@ -96,41 +107,37 @@ def _runs(present: list[list[int]]) -> list[tuple[int, int]]:
 
 
 class _Run:
-    """Colours first..stop-1 with the same families: stacked for one `lax.scan` over them (or
-    called once, for a colour of its own).
+    """Colours first..stop-1 with the same variants present: stacked for one `lax.scan` over them
+    (or called once, for a colour of its own).
 
     A family with variants (`Family.variants`: the joints, one per kind) is projected as one
-    family per variant, each traced with only its own rows. Each projected family's nodes are
-    padded to the run's largest colour by repeating a real node of it (the colour's first, or the
-    variant's first in the run where the colour has none of that variant): its arithmetic stays
-    finite, so no NaN reaches a gradient. The padded rows are never read back, since `body_slot`
-    (built here for the padded layout) points every moved body at its real node's row.
+    family per variant, each traced with only its own rows; every colour of a run holds the same
+    variants, so none runs a variant's kernels for nodes it does not have. Each projected
+    variant's nodes are padded to the run's largest colour by repeating the colour's first: its
+    arithmetic stays finite, so no NaN reaches a gradient. The padded rows are never read back,
+    since `body_slot` (built here for the padded layout) points every moved body at its real
+    node's row.
     """
 
-    def __init__(self, colours: tuple[Colour, ...], families: list[Family], first: int, stop: int, fs: list[int],
-                 num_bodies: int):  # fmt: skip
+    def __init__(self, colours: tuple[Colour, ...], families: list[Family], first: int, stop: int,
+                 present: list[tuple[int, int]], num_bodies: int):  # fmt: skip
         self.length = stop - first
         self.fs, self.nodes, self.index, self.families = [], [], [], []
-        for f in fs:
+        for f, v in present:
             family = families[f]
-            variants = family.variants or ((np.arange(len(family.bodies)), family.project),)
-            for members, project in variants:
-                per_colour = [np.intersect1d(colours[c].nodes[f].array, members) for c in range(first, stop)]
-                present = [nodes for nodes in per_colour if len(nodes)]
-                if not present:
-                    continue
-                width = max(len(nodes) for nodes in present)
-                index = np.stack([np.concatenate([nodes, np.repeat((nodes if len(nodes) else present[0])[:1],
-                                                                   width - len(nodes))])
-                                  for nodes in per_colour])  # fmt: skip
-                gathered = constraints.gather(family, index.reshape(-1))
-                reshape = lambda x, shape=index.shape: x.reshape(shape + x.shape[1:])  # noqa: E731
-                self.fs.append(f)
-                self.nodes.append(per_colour)  # the real nodes of each colour (family node indices)
-                self.index.append(index)  # (R, M) padded node indices
-                self.families.append(gathered._replace(
-                    bodies=reshape(gathered.bodies), params=jax.tree.map(reshape, gathered.params),
-                    static=jax.tree.map(reshape, gathered.static), project=project, variants=()))  # fmt: skip
+            members, project = _variants(family)[v]
+            per_colour = [np.intersect1d(colours[c].nodes[f].array, members) for c in range(first, stop)]
+            width = max(len(nodes) for nodes in per_colour)
+            index = np.stack([np.concatenate([nodes, np.repeat(nodes[:1], width - len(nodes))])
+                              for nodes in per_colour])  # fmt: skip
+            gathered = constraints.gather(family, index.reshape(-1))
+            reshape = lambda x, shape=index.shape: x.reshape(shape + x.shape[1:])  # noqa: E731
+            self.fs.append(f)
+            self.nodes.append(per_colour)  # the real nodes of each colour (family node indices)
+            self.index.append(index)  # (R, M) padded node indices
+            self.families.append(gathered._replace(
+                bodies=reshape(gathered.bodies), params=jax.tree.map(reshape, gathered.params),
+                static=jax.tree.map(reshape, gathered.static), project=project, variants=()))  # fmt: skip
         self.body_slot = np.stack(
             [
                 write_back_slots(
@@ -160,15 +167,15 @@ def gauss_seidel(
     """`iterations` sweeps over the colours; multipliers: one (M_f, m_f) array per family, in
     node order, in and out. Returns (dx, dtheta) (N + 1, 3) and the final multipliers.
 
-    Consecutive colours with the same families (a ragdoll's joint colours) run as one `lax.scan`
-    over the colours (`_Run`), so each family's projection is compiled once, not once per colour:
-    the compile time of a jointed model no longer grows with its number of colours. A colour of
-    its own (different families from its neighbours) is unrolled. What does not change during the
+    Consecutive colours with the same variants (a ragdoll's ball joints' colours) run as one
+    `lax.scan` over the colours (`_Run`), so each variant's projection is compiled once, not once
+    per colour: the compile time of a jointed model no longer grows with its number of colours. A
+    colour of its own (different variants from its neighbours) is unrolled. What does not change during the
     sweeps (the poses, masses, inertias and velocities of the bodies each node reads) is gathered
     once, before them. tree_step: run after every sweep (None: none).
     """
     n = table.dx.shape[0] - 1
-    present = [[f for f, nodes in enumerate(colour.nodes) if len(nodes.array)] for colour in colours]
+    present = [_present(colour, families) for colour in colours]
     runs = [_Run(colours, families, first, stop, present[first], n) for first, stop in _runs(present)]
     run_fixed = [[_fixed(table, family.bodies) for family in run.families] for run in runs]
     start = [[multipliers[f][index] for f, index in zip(run.fs, run.index, strict=True)] for run in runs]
