@@ -197,9 +197,9 @@ def test_driven_chain_damps_a_tiny_perturbation_instead_of_amplifying_it(float64
     assert float(jnp.abs(reference.vel - moved.vel).max()) < 1e-6
 
 
-def _mixed_tree():
-    """Six bodies on six kinds of joint (ball, hinge, universal, slider, gimbal, fixed), thrown:
-    the colours hold different mixes of kinds, and some colours none of a kind."""
+def _mixed_tree(**options):
+    """Six bodies on six kinds of joint (ball, hinge, universal, slider, gimbal, fixed), thrown;
+    the colouring gives each kind colours of its own (builder.colour_classes)."""
     rng = np.random.default_rng(5)
     b = dbd.ModelBuilder(gravity=(0.0, 0.0, -9.81))
     bodies = [b.add_body(pos=(0.1 * k, 0.05 * k, -0.3 * (k + 1)), mass=1.0 + 0.2 * k, inertia=(0.02, 0.03, 0.015),
@@ -211,15 +211,16 @@ def _mixed_tree():
     b.add_slider_joint(bodies[2], bodies[3], anchor=(0.25, 0.12, -1.05), axis=(0, 0, 1), limits=(-0.1, 0.1))
     b.add_gimbal_joint(bodies[0], bodies[4], anchor=(0.2, 0.1, -0.6), axes=[(0, 0, 1), (0, 1, 0), (1, 0, 0)])
     b.add_fixed_joint(bodies[1], bodies[5], anchor=(0.3, 0.15, -1.2))
-    return b.finalize(dt=1 / 60, iterations=4)
+    return b.finalize(dt=1 / 60, iterations=4, **options)
 
 
 @pytest.mark.slow  # 50 s on CI: a guard of how the sweeps are traced (every kind's rows give the same steps)
-def test_projecting_each_kind_of_joint_with_its_own_rows_changes_no_result(float64, monkeypatch):
-    """The solver projects the joints kind by kind (`joint_rows.variants`), each kind traced with its
-    own rows only; the rows a kind lacks are inactive, so this must give what one projection of
-    every row for every joint gives, to rounding."""
-    model = _mixed_tree()
+@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+def test_projecting_each_kind_of_joint_with_its_own_rows_changes_no_result(float64, monkeypatch, solver):
+    """Both solvers take the joints kind by kind (`joint_rows.variants`), each kind traced with its
+    own rows only; the rows a kind lacks are inactive, so this must give what one projection (one
+    velocity pass) of every row for every joint gives, to rounding."""
+    model = _mixed_tree(solver=solver)
     assert len(joint_rows.variants(model.structure)) == 5  # universal and gimbal share their rows
     _, by_kind = jax.jit(lambda s: dbd.rollout(model, s, steps=60))(dbd.init(model))
     every_joint = lambda structure: [(np.arange(len(structure.joint_kind.array)), joint_rows.rows_in_use(structure))]  # noqa: E731

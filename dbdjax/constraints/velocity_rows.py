@@ -547,6 +547,11 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     return *pair.displacements(), impulses
 
 
+def _solve_kind(joint_rows: JointRows, _, bodies: BodySet, impulses: jnp.ndarray, rows: frozenset[str]):
+    """`solve_joint` in the shape of `VelocityFamily.solve`, for one kind of joint's rows."""
+    return solve_joint(joint_rows, bodies, impulses, rows)
+
+
 def rotor_excess(joint_rows: JointRows, armature: jnp.ndarray, bodies: BodySet, impulses: jnp.ndarray,
                  h: float) -> jnp.ndarray:  # fmt: skip
     """(3,) what the sweeps left of one joint's rotor rows, in the units of the DBD solver's
@@ -763,6 +768,8 @@ class VelocityFamily(NamedTuple):
     solve(rows, static, bodies, impulses) -> (dv (S, 3), dw (S, 3), impulses): one pass, in the
     shape of `constraints.Family.project` (the solver vmaps both). num_impulses: per node, as kept
     in State.impulses. store(rows, impulses) -> what is kept of a solve's impulses, None for all.
+    variants: ((nodes, solve), ...) as `constraints.Family.variants` (the joints by kind: each
+    kind's pass traces only its own rows; the rows it leaves out are inactive for its joints).
     """
 
     name: str
@@ -773,6 +780,7 @@ class VelocityFamily(NamedTuple):
     solve: Callable
     num_impulses: int
     store: Callable | None = None
+    variants: tuple = ()
 
 
 def _nothing_to_prepare(params, static, bodies: BodySet, impulses):
@@ -817,6 +825,8 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
             "joints", tables[0], (model.joints, targets, start_speeds), joints.flags(structure),
             lambda p, flag, bodies, lam: prepare_joint(p[0], flag, p[1], p[2], BodyPair.of(bodies), lam, h, used),
             lambda r, _, bodies, lam: solve_joint(r, bodies, lam, used), JOINT_IMPULSES,
+            variants=tuple((members, functools.partial(_solve_kind, rows=rows))
+                           for members, rows in joints.variants(structure)),
         ),
         link_family("springs", tables[1], model.springs, spring=True),
         link_family("distances", tables[2], model.distances, spring=False),

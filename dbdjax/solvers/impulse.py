@@ -110,7 +110,8 @@ def solve(
             warm_dw = warm_dw + jax.ops.segment_sum(dw.reshape(-1, 3), index, n + 1)
         else:
             rows = None
-        prepared.append(Family(family.name, family.bodies, rows, family.static, family.solve, family.num_impulses))
+        prepared.append(Family(family.name, family.bodies, rows, family.static, family.solve, family.num_impulses,
+                               family.variants))  # fmt: skip
         impulses.append(lam)
     if not any(len(f.bodies) for f in prepared):
         zero = jnp.zeros((n, 3), dtype)
