@@ -60,8 +60,13 @@ def colour_groups(
     classes = [0] * len(family_bodies) if classes is None else list(classes)
     if len(classes) != len(family_bodies):
         raise ValueError(f"colour_groups: {len(classes)} classes for {len(family_bodies)} families")
+    per_family = [np.asarray(c, np.int64) for c in classes]
+    for f, (c, table) in enumerate(zip(per_family, family_bodies, strict=True)):
+        if c.ndim and c.shape != (len(table),):
+            raise ValueError(f"colour_groups: family {f} has {len(table)} nodes, its classes shape {c.shape}")
     nodes = [(f, m) for f, table in enumerate(family_bodies) for m in range(len(table))]
-    node_class = [int(np.broadcast_to(classes[f], (len(family_bodies[f]),))[m]) for f, m in nodes]
+    node_class = [int(c) for c, table in zip(per_family, family_bodies, strict=True)
+                  for c in np.broadcast_to(c, (len(table),))]  # fmt: skip
     colours = [0] * len(nodes)
     first = 0
     for kind in sorted(set(node_class)):

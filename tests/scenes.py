@@ -131,3 +131,20 @@ def hinge_angles(model, quat):
     angles = jnp.where(is_hinge, jnp.stack([hinge, zero, zero], -1), euler)
     return np.asarray(jnp.where(jnp.asarray((kind == HINGE) | (kind == UNIVERSAL) | (kind == GIMBAL))[:, None],
                                 angles, 0.0))  # fmt: skip
+
+
+def mixed_tree(**options) -> dbd.Model:
+    """Six bodies on six kinds of joint (ball, hinge, universal, slider, gimbal, fixed), thrown;
+    the colouring gives each kind colours of its own (builder.colour_classes)."""
+    rng = np.random.default_rng(5)
+    b = dbd.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    bodies = [b.add_body(pos=(0.1 * k, 0.05 * k, -0.3 * (k + 1)), mass=1.0 + 0.2 * k, inertia=(0.02, 0.03, 0.015),
+                         vel=rng.normal(size=3), ang_vel=2.0 * rng.normal(size=3)) for k in range(6)]  # fmt: skip
+    b.add_ball_joint(dbd.WORLD, bodies[0], anchor=(0, 0, 0), cone_limit=0.8)
+    b.add_hinge_joint(bodies[0], bodies[1], anchor=(0.05, 0.02, -0.45), axis=(0, 1, 0), limits=(-1.0, 1.2))
+    b.add_universal_joint(bodies[1], bodies[2], anchor=(0.15, 0.07, -0.75), axes=[(1, 0, 0), (0, 1, 0)],
+                          limits=[(-0.5, 0.5), (-0.7, 0.3)])  # fmt: skip
+    b.add_slider_joint(bodies[2], bodies[3], anchor=(0.25, 0.12, -1.05), axis=(0, 0, 1), limits=(-0.1, 0.1))
+    b.add_gimbal_joint(bodies[0], bodies[4], anchor=(0.2, 0.1, -0.6), axes=[(0, 0, 1), (0, 1, 0), (1, 0, 0)])
+    b.add_fixed_joint(bodies[1], bodies[5], anchor=(0.3, 0.15, -1.2))
+    return b.finalize(dt=1 / 60, iterations=4, **options)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_joints import _mixed_tree
+import scenes
 
 import dbdjax as dbd
 from dbdjax import colouring, ragdoll
@@ -14,18 +14,21 @@ from dbdjax.constraints import joints as joint_rows
 ASSETS = Path(__file__).parent / "assets"
 
 
-def _models():
+def _ragdoll():
     builder, _ = ragdoll.build()
-    return {
-        "mixed tree": _mixed_tree(),
-        "humanoid": dbd.load_mjcf(ASSETS / "humanoid.xml"),
-        "ragdoll": builder.finalize(),
-    }
+    return builder.finalize()
 
 
-@pytest.mark.parametrize("name", ["mixed tree", "humanoid", "ragdoll"])
+MODELS = {
+    "mixed tree": scenes.mixed_tree,
+    "humanoid": lambda: dbd.load_mjcf(ASSETS / "humanoid.xml"),
+    "ragdoll": _ragdoll,
+}
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
 def test_every_colour_moves_each_body_once_and_holds_one_kind_of_joint(name):
-    model = _models()[name]
+    model = MODELS[name]()
     structure = model.structure
     tables = structure.family_bodies()
     kind_of = np.full(structure.num_joints, -1)
@@ -70,3 +73,5 @@ def test_nodes_of_different_classes_never_share_a_colour_and_lower_classes_come_
     assert members == [([1, 3], []), ([0, 2, 4], []), ([], [0])]
     with pytest.raises(ValueError, match="2 classes for 1 families"):
         colouring.colour_groups([links], 6, classes=[0, 1])
+    with pytest.raises(ValueError, match="family 0 has 5 nodes"):
+        colouring.colour_groups([links], 6, classes=[np.array([0, 1])])

@@ -197,30 +197,13 @@ def test_driven_chain_damps_a_tiny_perturbation_instead_of_amplifying_it(float64
     assert float(jnp.abs(reference.vel - moved.vel).max()) < 1e-6
 
 
-def _mixed_tree(**options):
-    """Six bodies on six kinds of joint (ball, hinge, universal, slider, gimbal, fixed), thrown;
-    the colouring gives each kind colours of its own (builder.colour_classes)."""
-    rng = np.random.default_rng(5)
-    b = dbd.ModelBuilder(gravity=(0.0, 0.0, -9.81))
-    bodies = [b.add_body(pos=(0.1 * k, 0.05 * k, -0.3 * (k + 1)), mass=1.0 + 0.2 * k, inertia=(0.02, 0.03, 0.015),
-                         vel=rng.normal(size=3), ang_vel=2.0 * rng.normal(size=3)) for k in range(6)]  # fmt: skip
-    b.add_ball_joint(dbd.WORLD, bodies[0], anchor=(0, 0, 0), cone_limit=0.8)
-    b.add_hinge_joint(bodies[0], bodies[1], anchor=(0.05, 0.02, -0.45), axis=(0, 1, 0), limits=(-1.0, 1.2))
-    b.add_universal_joint(bodies[1], bodies[2], anchor=(0.15, 0.07, -0.75), axes=[(1, 0, 0), (0, 1, 0)],
-                          limits=[(-0.5, 0.5), (-0.7, 0.3)])  # fmt: skip
-    b.add_slider_joint(bodies[2], bodies[3], anchor=(0.25, 0.12, -1.05), axis=(0, 0, 1), limits=(-0.1, 0.1))
-    b.add_gimbal_joint(bodies[0], bodies[4], anchor=(0.2, 0.1, -0.6), axes=[(0, 0, 1), (0, 1, 0), (1, 0, 0)])
-    b.add_fixed_joint(bodies[1], bodies[5], anchor=(0.3, 0.15, -1.2))
-    return b.finalize(dt=1 / 60, iterations=4, **options)
-
-
 @pytest.mark.slow  # 50 s on CI: a guard of how the sweeps are traced (every kind's rows give the same steps)
 @pytest.mark.parametrize("solver", ["dbd", "impulse"])
 def test_projecting_each_kind_of_joint_with_its_own_rows_changes_no_result(float64, monkeypatch, solver):
     """Both solvers take the joints kind by kind (`joint_rows.variants`), each kind traced with its
     own rows only; the rows a kind lacks are inactive, so this must give what one projection (one
     velocity pass) of every row for every joint gives, to rounding."""
-    model = _mixed_tree(solver=solver)
+    model = scenes.mixed_tree(solver=solver)
     assert len(joint_rows.variants(model.structure)) == 5  # universal and gimbal share their rows
     _, by_kind = jax.jit(lambda s: dbd.rollout(model, s, steps=60))(dbd.init(model))
     every_joint = lambda structure: [(np.arange(len(structure.joint_kind.array)), joint_rows.rows_in_use(structure))]  # noqa: E731

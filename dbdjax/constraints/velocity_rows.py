@@ -548,7 +548,8 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
 
 
 def _solve_kind(joint_rows: JointRows, _, bodies: BodySet, impulses: jnp.ndarray, rows: frozenset[str]):
-    """`solve_joint` in the shape of `VelocityFamily.solve`, for one kind of joint's rows."""
+    """`solve_joint` in the shape of `VelocityFamily.solve`, tracing `rows` (every row in use, or
+    one kind of joint's)."""
     return solve_joint(joint_rows, bodies, impulses, rows)
 
 
@@ -824,7 +825,7 @@ def families(model: Model, control: jnp.ndarray | None, contacts: tuple[ContactS
         VelocityFamily(
             "joints", tables[0], (model.joints, targets, start_speeds), joints.flags(structure),
             lambda p, flag, bodies, lam: prepare_joint(p[0], flag, p[1], p[2], BodyPair.of(bodies), lam, h, used),
-            lambda r, _, bodies, lam: solve_joint(r, bodies, lam, used), JOINT_IMPULSES,
+            functools.partial(_solve_kind, rows=used), JOINT_IMPULSES,
             variants=tuple((members, functools.partial(_solve_kind, rows=rows))
                            for members, rows in joints.variants(structure)),
         ),
