@@ -1114,11 +1114,12 @@ class ModelBuilder:
         jacobi: project every joint at once and average per body instead (for comparison).
         velocity_dependent_inertia: use the effective inertia of DBD (58) in the solver.
         checkpoint: rematerialise each substep in reverse mode (memory flat in substeps).
-        contact_margin: m, shapes closer than this get contact slots (speculative contacts; they
-        only push once they touch). contact_compliance: m/N, 0 for rigid contacts; a small value
-        (1e-6 .. 1e-4) makes contact a stiff spring, whose gradients are smoother for trajectory
-        optimisation. depenetration_speed: m/s, the fastest the DBD solver pushes a point out of a
-        penetration it began a substep in (the rest waits for the next substeps; inf: all at once,
+        contact_margin: m, shapes closer than this at the predicted pose, or at the start of the
+        substep, get contact slots (speculative contacts; they only push once they touch).
+        contact_compliance: m/N, 0 for rigid contacts; a small value (1e-6 .. 1e-4) makes contact a
+        stiff spring, whose gradients are smoother for trajectory optimisation.
+        depenetration_speed: m/s, the fastest the DBD solver pushes a point out of a penetration
+        it began a substep in (the rest waits for the next substeps; inf: all at once,
         which gives a deep point depth / h, a kick at small h). restitution_iterations: sweeps of
         the velocity pass (restitution).
         solver: "dbd" (DBD Algorithm 1, positions) or "impulse" (SI: sequential impulses on the

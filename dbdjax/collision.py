@@ -25,7 +25,8 @@ Conventions (shared by all pairs, the contact constraint of DBD (84) with i = b,
 - `distance` (P,) is the signed separation along the normal (negative = penetration depth), so
   that `point_b = point_a + distance * normal`, i.e. `distance = (point_b - point_a) . normal`.
 - `active` (P,) is True where the slot holds a point for this configuration AND
-  `distance < margin` (margin >= 0, metres: speculative contacts).
+  `distance < margin` (margin >= 0, metres: speculative contacts; `detect` keeps a slot also
+  where its points were closer than the margin at the start of the substep).
 - For plane pairs a is the plane; the plane is {x : n . x = d}, solid where n . x < d.
 - Slots that are not active still hold finite numbers (meaningless where the slot is invalid).
 - Depth semantics: for sphere, capsule and box pairs the deepest distance is the exact signed
@@ -814,7 +815,9 @@ class ContactSlots(NamedTuple):
     sliding: (C, P) bool, the points were sliding over each other at the start of the substep
       (tangential speed above g h, the speed one substep of gravity gives): their friction is
       bounded by mu_d, otherwise by mu_s (DBD 7.1).
-    active: (C, P) bool, a slot with a point closer than the contact margin.
+    active: (C, P) bool, a slot whose points are closer than the contact margin at X* or at the
+      start of the substep (the solve can move a body far from its prediction: a hand resting on
+      the floor that the push on its arm drags down).
     friction, dynamic_friction, restitution: (C,) the pair's combined material:
       sqrt(mu_1 mu_2) for both frictions and max(e_1, e_2), as Box2D combines them.
     allowed_depth: (C, P) m, how deep the point may still be at the end of the substep: what is
@@ -872,8 +875,9 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
 
         a, b = side
         one_pair = functools.partial(collide, group.kind_a, group.kind_b)
+        # margin inf: `active` is every slot that holds a point; the margin is applied below
         contacts = jax.vmap(one_pair, in_axes=(0, 0, 0, 0, 0, 0, None))(
-            a["size"], a["pos"], a["quat"], b["size"], b["pos"], b["quat"], model.options.contact_margin
+            a["size"], a["pos"], a["quat"], b["size"], b["pos"], b["quat"], jnp.inf
         )
 
         def body_point(s, point):
@@ -890,6 +894,12 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
         local_a, start_arm_a, speed_a, start_speed_a = body_point(a, contacts.point_a)
         local_b, start_arm_b, speed_b, start_speed_b = body_point(b, contacts.point_b)
         offset = (start_pos[b["body"]] - start_pos[a["body"]])[:, None] + (start_arm_b - start_arm_a)
+        # Speculative slots: a point closer than the margin at X* or where it began the substep. The
+        # solve moves bodies away from X* (joints drag them), and a point found at X* alone missed
+        # what it was dragged into: over 10,000 pushed ragdoll steps (tests/test_ragdoll.py) an
+        # upper arm 5 mm above the floor went 41.5 mm into it (the deepest now: 9.8 mm).
+        start_gap = _dot(offset, contacts.normal)
+        active = contacts.active & (jnp.minimum(contacts.distance, start_gap) < model.options.contact_margin)
         relative = start_speed_b - start_speed_a
         tangential = relative - _dot(relative, contacts.normal)[..., None] * contacts.normal
         friction = safe_sqrt(shapes.friction[shape[:, 0]] * shapes.friction[shape[:, 1]])
@@ -900,7 +910,7 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
         # shape leaves at depth / h, and at large depths or small h that is a kick. (Brax's ant
         # landing with a foot 47 mm in the floor: at 4 substeps the whole tree solve threw its
         # torso up at 10 m/s; MuJoCo's soft contacts, from the same state: 4.2 m/s.)
-        depth = jnp.maximum(-_dot(offset, contacts.normal), 0.0)  # (C, P) at the start of the substep
+        depth = jnp.maximum(-start_gap, 0.0)  # (C, P) at the start of the substep
         pushout = jnp.minimum(depth, model.options.depenetration_speed * h)
         result.append(
             ContactSlots(
@@ -910,7 +920,7 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
                 offset=offset,
                 approach=_dot(speed_b - speed_a, contacts.normal),
                 sliding=safe_norm(tangential) > creep,
-                active=contacts.active,
+                active=active,
                 friction=friction,
                 dynamic_friction=dynamic,
                 restitution=restitution,
