@@ -29,7 +29,9 @@ def joint_gaps(model: Model, state: State) -> jnp.ndarray:
     a, b = structure.joint_body_a.array, structure.joint_body_b.array
     world = structure.num_bodies
     zero = jnp.zeros((), state.pos.dtype)
-    pair = BodyPair(*([zero] * len(BodyPair._fields)))._replace(origin_a=pos[..., a, :], origin_b=pos[..., b, :])
+    pair = BodyPair(*([zero] * (len(BodyPair._fields) - 1)), jnp.zeros((4, 3), zero.dtype))._replace(
+        origin_a=pos[..., a, :], origin_b=pos[..., b, :]
+    )
     delta, _, _ = rows.anchor_points(
         pair, model.joints.local_anchor_a, model.joints.local_anchor_b, (a == world)[:, None], (b == world)[:, None],
         quat[..., a, :], quat[..., b, :],

@@ -85,11 +85,11 @@ def _manifold(pair: BodyPair, normal: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jn
 def _move(pair: BodyPair, impulse: jnp.ndarray, directions, turn_a, turn_b) -> BodyPair:
     """Apply multiplier increments (P, 3) along the rows: b along d, a against it."""
     push = jnp.einsum("pk,pki->i", impulse, directions)
-    return pair._replace(
-        dx_a=pair.dx_a - pair.inv_mass_a * push,
-        dx_b=pair.dx_b + pair.inv_mass_b * push,
-        dtheta_a=pair.dtheta_a - jnp.einsum("pk,pki->i", impulse, turn_a),
-        dtheta_b=pair.dtheta_b + jnp.einsum("pk,pki->i", impulse, turn_b),
+    return pair.moved_by(
+        dx_a=-pair.inv_mass_a * push,
+        dx_b=pair.inv_mass_b * push,
+        dtheta_a=-jnp.einsum("pk,pki->i", impulse, turn_a),
+        dtheta_b=jnp.einsum("pk,pki->i", impulse, turn_b),
     )
 
 

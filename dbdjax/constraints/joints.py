@@ -196,7 +196,8 @@ def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
     pos, quat = with_world_row(pos), with_world_row(quat, math.quat_identity().astype(quat.dtype))
     zero = jnp.zeros((len(a), 3), pos.dtype)
     scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
-    pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 8))
+    pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 4),
+                    jnp.zeros((len(a), 4, 3), pos.dtype))  # fmt: skip
     return jax.vmap(lambda joint, flag, two: _coordinates(joint, flag, two, kinds))(model.joints, flags(structure),
                                                                                      pair)  # fmt: skip
 
@@ -362,7 +363,7 @@ def _euler_angles(joint: Joints, flag: JointFlags, pair: BodyPair, rows: frozens
 
 def _unmoved(pair: BodyPair) -> BodyPair:
     """The pair at the prediction X* (nothing moved yet this substep): the rotor rows' reference."""
-    return pair._replace(**{f: jnp.zeros_like(pair.dx_a) for f in ("dx_a", "dx_b", "dtheta_a", "dtheta_b")})
+    return pair._replace(motion=jnp.zeros_like(pair.motion))
 
 
 def rotor_error(joint: Joints, target: Targets, k: int, change, h: float):
@@ -370,6 +371,12 @@ def rotor_error(joint: Joints, target: Targets, k: int, change, h: float):
     change = q(X* + dX) - q(X*) (angles wrapped); `project`'s armature comment says why."""
     armature = jnp.where(joint.armature[k] > 0.0, joint.armature[k], 1.0)
     return change + target.rotor[k] - h**2 * target.torque[k] / armature
+
+
+def _hinge_rotor_reference(joint: Joints, target: Targets, pair: BodyPair):
+    """The hinge angle (rad) a hinge's rotor row measures its change from: at X*, or the
+    substep's reference (`Targets.reference`) where the caller gave one."""
+    return hinge_angle(joint, _unmoved(pair))[0] if target.reference is None else target.reference[0]
 
 
 def rotor_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair, kind: str, h: float,
@@ -380,7 +387,7 @@ def rotor_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair,
     "rotor_euler" (rows: which of universal / gimbal to trace, as `_euler_angles`) or "rotor_ball"."""
     still = _unmoved(pair)
     if kind == "rotor_hinge":
-        reference = hinge_angle(joint, still)[0] if target.reference is None else target.reference[0]
+        reference = _hinge_rotor_reference(joint, target, pair)
         angle, axis = hinge_angle(joint, pair)
         error = rotor_error(joint, target, 0, math.wrap_angle(angle - reference), h)
         zero = jnp.zeros((2, 3), axis.dtype)
@@ -713,21 +720,39 @@ def project(
     # t_k by g_k . (that turn), and g_k stays the one measured here (the rows' Jacobians, fixed
     # for one projection of the joint). Measuring them again before each of the up to nine rows
     # that read them was a third of the humanoid's compiled joint sweep.
+    # The rows along one g_k (its rotor, drive and limit) share its response (`rows.AngularResponse`),
+    # computed for the three at once.
     if {"rotor_euler", "euler_drive", "euler_limited"} & rows:
         measured_angles, euler_directions = _euler_angles(joint, flag, pair, rows)
         measured_turn = pair.dtheta_b - pair.dtheta_a
+        euler_responses = row.angular_response(pair, euler_directions, hold)
 
         def euler_angles_now(pair):  # (3,) rad: t_k at the pair as the rows have moved it
             return measured_angles + math.matvec(euler_directions, (pair.dtheta_b - pair.dtheta_a) - measured_turn)
+
+        def euler_response(k, sign):  # the response along sign * g_k
+            return jax.tree.map(lambda x: x[k], euler_responses).times(sign)
+
+    # A hinge's angle about its axle (a ball's twist) likewise, for its rotor, drive, motor and
+    # limit rows: measured once, carried to first order along the axle, which they share.
+    if {"rotor_hinge", "hinge_drive", "angular_motor", "has_angle_limits"} & rows:
+        measured_angle, hinge_axis = hinge_angle(joint, pair)
+        measured_hinge_turn = pair.dtheta_b - pair.dtheta_a
+        hinge_response = row.angular_response(pair, hinge_axis, hold)
+
+        def hinge_angle_now(pair):  # rad: the angle at the pair as the rows have moved it
+            return measured_angle + math.dot(hinge_axis, (pair.dtheta_b - pair.dtheta_a) - measured_hinge_turn)
 
     def rotor_rule(k, active):  # a spring row with k h^2 = armature, undamped
         return row.spring(xi, active, joint.armature[k], 0.0)
 
     if "rotor_hinge" in rows:
-        error, directions = rotor_rows(joint, flag, target, pair, "rotor_hinge", h)
+        change = math.wrap_angle(hinge_angle_now(pair) - _hinge_rotor_reference(joint, target, pair))
+        error = rotor_error(joint, target, 0, change, h)
         pair, lam[ROTOR], hold = row.angular_row(
-            pair, -directions[0], error[0], lam[ROTOR], rotor_rule(0, flag.rotor_hinge), h, hold, held_step=True
-        )
+            pair, -hinge_axis, error, lam[ROTOR], rotor_rule(0, flag.rotor_hinge), h, hold, held_step=True,
+            response=hinge_response.times(-1.0),
+        )  # fmt: skip
     if "rotor_slider" in rows:
         error, axis, arm_a, arm_b = slider_rotor_row(joint, flag, target, pair, h)
         pair, lam[ROTOR] = row.positional_row(
@@ -750,7 +775,7 @@ def project(
             error = rotor_error(joint, target, k, math.wrap_angle(angles[k] - reference[2][k]), h)
             pair, lam[ROTOR + k], hold = row.angular_row(
                 pair, -directions[k], error, lam[ROTOR + k], rotor_rule(k, flag.rotor_euler[k]), h, hold,
-                held_step=True,
+                held_step=True, response=euler_response(k, -1.0),
             )  # fmt: skip
 
     # Drive (DBD 9): an implicit angular spring/damper toward the control target with the torque
@@ -759,11 +784,11 @@ def project(
     stiffness_h2, damping_h = joint.drive_stiffness * h**2, joint.drive_damping * h
     torque_bound = joint.drive_max_torque * h**2
     if "hinge_drive" in rows:
-        angle, axis = hinge_angle(joint, pair)
-        error = math.wrap_angle(angle - target.drive[0])
+        error = math.wrap_angle(hinge_angle_now(pair) - target.drive[0])
         pair, lam[DRIVE], hold = row.angular_row(
-            pair, -axis, error, lam[DRIVE],
+            pair, -hinge_axis, error, lam[DRIVE],
             row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h, hold,
+            response=hinge_response.times(-1.0),
         )  # fmt: skip
     if "ball_drive" in rows:
         error = ball_drive_error(joint, target, *pair.current_quats())
@@ -781,16 +806,16 @@ def project(
             pair, lam[DRIVE + k], hold = row.angular_row(
                 pair, -directions[k], error, lam[DRIVE + k],
                 row.spring(xi, flag.euler_drive, joint.axis_stiffness[k] * h**2, joint.axis_damping[k] * h,
-                           torque_bound), h, hold,
+                           torque_bound), h, hold, response=euler_response(k, -1.0),
             )  # fmt: skip
 
     # Motor: the relative speed along the axle or slide axis, force-limited (SI 2.3.6, 2.4.6).
     force_bound = joint.motor_max_force * h**2
     if "angular_motor" in rows:
-        _, axis = hinge_angle(joint, pair)
         pair, lam[MOTOR], hold = row.angular_row(
-            pair, -axis, 0.0, lam[MOTOR], row.motor(xi, flag.angular_motor, target.motor * h, force_bound), h, hold
-        )
+            pair, -hinge_axis, 0.0, lam[MOTOR], row.motor(xi, flag.angular_motor, target.motor * h, force_bound), h,
+            hold, response=hinge_response.times(-1.0),
+        )  # fmt: skip
     if "linear_motor" in rows:
         _, axis, arm_a, arm_b = slider_travel(joint, flag, pair)
         pair, lam[MOTOR] = row.positional_row(
@@ -836,11 +861,12 @@ def project(
     # [lower, upper] by two one-sided rows (SI (108), (115)) clamped as in DBD (83), projected as
     # one (`_nearer_bound`).
     if "has_angle_limits" in rows:
-        angle, axis = hinge_angle(joint, pair)
-        sign, error, upper_row = _nearer_bound(angle, joint.lower, joint.upper, periodic=True)
+        sign, error, upper_row = _nearer_bound(hinge_angle_now(pair), joint.lower, joint.upper, periodic=True)
         multiplier = jnp.where(upper_row, lam[ANGLE_UPPER], lam[ANGLE_LOWER])
         rule = limit_rule(flag.has_angle_limits, joint.armature[0])
-        pair, multiplier, hold = row.angular_row(pair, sign * axis, error, multiplier, rule, h, hold, limit_held)
+        pair, multiplier, hold = row.angular_row(
+            pair, sign * hinge_axis, error, multiplier, rule, h, hold, limit_held, hinge_response.times(sign)
+        )
         lam[ANGLE_LOWER] = jnp.where(upper_row, lam[ANGLE_LOWER], multiplier)
         lam[ANGLE_UPPER] = jnp.where(upper_row, multiplier, lam[ANGLE_UPPER])
 
@@ -865,7 +891,7 @@ def project(
             multiplier = jnp.where(upper_row, lam[EULER_UPPER + k], lam[EULER_LOWER + k])
             rule = limit_rule(flag.euler_limited[k], joint.armature[k])
             pair, multiplier, hold = row.angular_row(
-                pair, sign * directions[k], error, multiplier, rule, h, hold, limit_held
+                pair, sign * directions[k], error, multiplier, rule, h, hold, limit_held, euler_response(k, sign)
             )
             lam[EULER_LOWER + k] = jnp.where(upper_row, lam[EULER_LOWER + k], multiplier)
             lam[EULER_UPPER + k] = jnp.where(upper_row, multiplier, lam[EULER_UPPER + k])

@@ -58,7 +58,9 @@ class BodyPair(NamedTuple):
     origin_*: (3,) predicted centre of mass X*. quat_*: (4,) predicted orientation.
     inv_mass_*: () 1/kg (0 for the world). inv_inertia_*: (3, 3) world frame (0 for the world).
     vel_*, ang_vel_*: (3,) predicted velocities V* (so that X* - X^t = h V*).
-    dx_*, dtheta_*: (3,) displacement and rotation accumulated so far this substep.
+    motion: (4, 3) what the pair moved so far this substep, rows dx_a, dx_b, dtheta_a, dtheta_b
+    (displacements and rotations; read them by name). One array, not four: on XLA:CPU every
+    array a row writes is a kernel of its own, so a row that moves the pair writes one.
     """
 
     origin_a: jnp.ndarray
@@ -73,27 +75,44 @@ class BodyPair(NamedTuple):
     vel_b: jnp.ndarray
     ang_vel_a: jnp.ndarray
     ang_vel_b: jnp.ndarray
-    dx_a: jnp.ndarray
-    dx_b: jnp.ndarray
-    dtheta_a: jnp.ndarray
-    dtheta_b: jnp.ndarray
+    motion: jnp.ndarray
+
+    @property
+    def dx_a(self) -> jnp.ndarray:
+        return self.motion[..., 0, :]
+
+    @property
+    def dx_b(self) -> jnp.ndarray:
+        return self.motion[..., 1, :]
+
+    @property
+    def dtheta_a(self) -> jnp.ndarray:
+        return self.motion[..., 2, :]
+
+    @property
+    def dtheta_b(self) -> jnp.ndarray:
+        return self.motion[..., 3, :]
 
     @classmethod
     def of(cls, bodies: BodySet) -> BodyPair:
         """The pair view of a two-body `BodySet` (side a is row 0, side b row 1)."""
-        fields = [getattr(bodies, name)[i] for name in BodySet._fields for i in (0, 1)]
-        return cls(*fields)
+        fields = [getattr(bodies, name)[i] for name in BodySet._fields[:-2] for i in (0, 1)]
+        return cls(*fields, jnp.concatenate([bodies.dx, bodies.dtheta]))
+
+    def moved_by(self, dx_a=0.0, dx_b=0.0, dtheta_a=0.0, dtheta_b=0.0) -> BodyPair:
+        """The pair moved further by dx_a, dx_b (m) and dtheta_a, dtheta_b (rad), each (3,) or 0."""
+        zero = jnp.zeros_like(self.dx_a)
+        change = jnp.stack([jnp.broadcast_to(v, zero.shape) + zero for v in (dx_a, dx_b, dtheta_a, dtheta_b)])
+        return self._replace(motion=self.motion + change)
 
     def displacements(self) -> tuple[jnp.ndarray, jnp.ndarray]:
         """(dx (2, 3), dtheta (2, 3)): the pair's displacements in `BodySet` row order."""
-        return jnp.stack([self.dx_a, self.dx_b]), jnp.stack([self.dtheta_a, self.dtheta_b])
+        return self.motion[..., :2, :], self.motion[..., 2:, :]
 
     def current_quats(self) -> tuple[jnp.ndarray, jnp.ndarray]:
         """Orientations at X* + dX (what the non-linear update of DBD 4.1 evaluates at)."""
         # Both sides as one (2, 4) computation, as `rotate_pair`.
-        both = integrator.displaced_quat(
-            jnp.stack([self.quat_a, self.quat_b]), jnp.stack([self.dtheta_a, self.dtheta_b])
-        )
+        both = integrator.displaced_quat(jnp.stack([self.quat_a, self.quat_b]), self.motion[..., 2:, :])
         return both[0], both[1]
 
 
@@ -324,11 +343,11 @@ def positional_row(
             - math.dot(torque_b, h * pair.ang_vel_b + pair.dtheta_b)
         )
     step = multiplier_step(rule, error, drift, inverse_mass, multiplier)
-    moved = pair._replace(
-        dx_a=pair.dx_a + (pair.inv_mass_a * step) * direction,
-        dx_b=pair.dx_b - (pair.inv_mass_b * step) * direction,
-        dtheta_a=pair.dtheta_a + step * turn_a,
-        dtheta_b=pair.dtheta_b - step * turn_b,
+    moved = pair.moved_by(
+        dx_a=(pair.inv_mass_a * step) * direction,
+        dx_b=-(pair.inv_mass_b * step) * direction,
+        dtheta_a=step * turn_a,
+        dtheta_b=-step * turn_b,
     )
     return moved, multiplier + step
 
@@ -376,6 +395,38 @@ def held_inverse_mass(inverse_mass, turn_a, turn_b, hold: PointHold) -> tuple[jn
     return jnp.maximum(inverse_mass + math.dot(gap, point_impulse), 0.0), point_impulse
 
 
+class AngularResponse(NamedTuple):
+    """What a unit step of an angular row along `direction` d does, with the joint's point held or
+    not (`angular_response`): its response w = d . (I_a^-1 + I_b^-1) d (`row_inverse_mass`), the
+    held response w - s^T K^-1 s and its point impulse mu = -K^-1 s (`held_inverse_mass`; w and 0
+    with no hold), and how it moves the pair (`BodyPair.motion` (..., 4, 3): the turns +-I^-1 d
+    and, held, mu's push at the point). They read only the inertias at X* and the hold's arms,
+    both fixed through a joint's projection: rows along one direction (a hinge angle's rotor,
+    drive and limit) share them, and a row along -d takes them with its sign (`times`)."""
+
+    inverse_mass: jnp.ndarray
+    held_mass: jnp.ndarray
+    point_impulse: jnp.ndarray
+    motion: jnp.ndarray
+
+    def times(self, sign) -> AngularResponse:
+        """The response along sign * d (sign: +-1)."""
+        return self._replace(point_impulse=sign * self.point_impulse, motion=sign * self.motion)
+
+
+def angular_response(pair: BodyPair, direction: jnp.ndarray, hold: PointHold | None) -> AngularResponse:
+    """The `AngularResponse` of rows along `direction` (..., 3) (leading axes: several directions
+    at once) with the point of `hold` held (None: nothing held)."""
+    inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
+    zero = jnp.zeros_like(turn_a)
+    if hold is None:
+        return AngularResponse(inverse_mass, inverse_mass, zero, jnp.stack([zero, zero, turn_a, -turn_b], axis=-2))
+    held_mass, point_impulse = held_inverse_mass(inverse_mass, turn_a, turn_b, hold)
+    pushed = point_impulse_motion(pair, hold.arm_a, hold.arm_b, point_impulse)
+    turned = jnp.stack([zero, zero, turn_a, -turn_b], axis=-2)
+    return AngularResponse(inverse_mass, held_mass, point_impulse, pushed + turned)
+
+
 def angular_row(
     pair: BodyPair,
     direction: jnp.ndarray,
@@ -385,6 +436,7 @@ def angular_row(
     h: float = 1.0,
     hold: PointHold | None = None,
     held_step: bool = False,
+    response: AngularResponse | None = None,
 ) -> tuple[BodyPair, jnp.ndarray, PointHold | None]:
     """Project one angular row: error c (rad) with dc/dtheta_a = `direction` = -dc/dtheta_b.
 
@@ -397,26 +449,23 @@ def angular_row(
     projected last) steps as if it were closed, and the point block then undoes part of the turn:
     a rotor of armature 40-120x its joint's inertia (Brax's ant) fed energy in that way, 6.7 J ->
     2,352 J in 20 steps at 4 substeps x 4 iterations. held_step may also be a () bool array, per
-    joint (soft limits: `joints.project`). Returns the moved pair, the new multiplier and the hold
-    with the point impulse it added.
+    joint (soft limits: `joints.project`). response: `angular_response(pair, direction, hold)`
+    computed beforehand (rows along one direction share it), or None to compute it here. Returns
+    the moved pair, the new multiplier and the hold with the point impulse it added.
     """
-    inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
-    if hold is not None:
-        held_mass, point_impulse = held_inverse_mass(inverse_mass, turn_a, turn_b, hold)
-        if held_step is not False:  # True, or per joint (soft limits)
-            inverse_mass = jnp.where(held_step, held_mass, inverse_mass)
-            error = jnp.where(held_step, error + math.dot(point_impulse, hold.gap), error)  # the held slope
+    if response is None:
+        response = angular_response(pair, direction, hold)
+    inverse_mass = response.inverse_mass
+    if hold is not None and held_step is not False:  # True, or per joint (soft limits)
+        inverse_mass = jnp.where(held_step, response.held_mass, inverse_mass)
+        error = jnp.where(held_step, error + math.dot(response.point_impulse, hold.gap), error)  # the held slope
     drift = 0.0
     if rule.spring or rule.speed or rule.soft:
         drift = -math.dot(direction, relative_turn(pair, h))  # direction is dc/dtheta_a = -d
     step = multiplier_step(rule, error, drift, inverse_mass, multiplier)
-    moved = pair._replace(
-        dtheta_a=pair.dtheta_a + step * turn_a,
-        dtheta_b=pair.dtheta_b - step * turn_b,
-    )
+    moved = pair._replace(motion=pair.motion + step * response.motion)
     if hold is not None:
-        moved = apply_point_impulse(moved, hold.arm_a, hold.arm_b, step * point_impulse)
-        hold = hold._replace(impulse=hold.impulse + step * point_impulse)
+        hold = hold._replace(impulse=hold.impulse + step * response.point_impulse)
     return moved, multiplier + step, hold
 
 
@@ -459,9 +508,8 @@ def angular_spring(
     finite_bound = jnp.where(limited, bound, 0.0)
     candidate = jnp.where(limited & (size > finite_bound), finite_bound * direction, candidate)  # (114)
     step = jnp.where(active, candidate - multiplier, 0.0)
-    moved = pair._replace(
-        dtheta_a=pair.dtheta_a - math.matvec(pair.inv_inertia_a, step),
-        dtheta_b=pair.dtheta_b + math.matvec(pair.inv_inertia_b, step),
+    moved = pair.moved_by(
+        dtheta_a=-math.matvec(pair.inv_inertia_a, step), dtheta_b=math.matvec(pair.inv_inertia_b, step)
     )
     if hold is not None:  # kappa turns a by -I_a^-1 kappa and b by +I_b^-1 kappa
         point_impulse, _ = point_impulses(
@@ -500,9 +548,8 @@ def angular_block(
         residual = math.matvec(constrained, residual)
     solve, solvable = definite_inverse(inverse_inertia, rule.active)
     step = jnp.where(solvable, -rule.relaxation * math.matvec(solve, residual), 0.0)
-    moved = pair._replace(
-        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, step),
-        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, step),
+    moved = pair.moved_by(
+        dtheta_a=math.matvec(pair.inv_inertia_a, step), dtheta_b=-math.matvec(pair.inv_inertia_b, step)
     )
     return moved, multiplier + step
 
@@ -535,15 +582,25 @@ def definite_inverse(matrix: jnp.ndarray, active: jnp.ndarray) -> tuple[jnp.ndar
     return jnp.where(invertible, math.inverse3(jnp.where(invertible, matrix, eye)), 0.0), invertible
 
 
-def apply_point_impulse(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, impulse: jnp.ndarray) -> BodyPair:
-    """Move the pair by an impulse (3,) (kg m: the multiplier step) acting at arm_a from a's centre
-    and its opposite at arm_b from b's: dX = M~^-1 J^T d lambda with J of (65), DBD (52)."""
-    return pair._replace(
-        dx_a=pair.dx_a + pair.inv_mass_a * impulse,
-        dx_b=pair.dx_b - pair.inv_mass_b * impulse,
-        dtheta_a=pair.dtheta_a + math.matvec(pair.inv_inertia_a, math.cross(arm_a, impulse)),
-        dtheta_b=pair.dtheta_b - math.matvec(pair.inv_inertia_b, math.cross(arm_b, impulse)),
+def point_impulse_motion(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, impulse: jnp.ndarray):
+    """How an impulse (..., 3) (kg m: the multiplier step) at arm_a from a's centre and its
+    opposite at arm_b from b's move the pair, (..., 4, 3) as `BodyPair.motion`:
+    dX = M~^-1 J^T d lambda with J of (65), DBD (52)."""
+    return jnp.stack(
+        [
+            pair.inv_mass_a * impulse,
+            -pair.inv_mass_b * impulse,
+            math.matvec(pair.inv_inertia_a, math.cross(arm_a, impulse)),
+            -math.matvec(pair.inv_inertia_b, math.cross(arm_b, impulse)),
+        ],
+        axis=-2,
     )
+
+
+def apply_point_impulse(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, impulse: jnp.ndarray) -> BodyPair:
+    """Move the pair by an impulse (3,) acting at arm_a from a's centre and its opposite at arm_b
+    from b's (`point_impulse_motion`)."""
+    return pair._replace(motion=pair.motion + point_impulse_motion(pair, arm_a, arm_b, impulse))
 
 
 def point_spring(

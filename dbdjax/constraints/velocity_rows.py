@@ -183,11 +183,11 @@ def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):
 def _push(pair: BodyPair, linear, turn_a, turn_b, impulse) -> BodyPair:
     """Apply impulses (K,) along rows (K, 3): M^-1 J^T lambda, +b and -a (SI (23))."""
     push = jnp.sum(impulse[:, None] * linear, axis=0)
-    return pair._replace(
-        dx_a=pair.dx_a - pair.inv_mass_a * push,
-        dx_b=pair.dx_b + pair.inv_mass_b * push,
-        dtheta_a=pair.dtheta_a - jnp.sum(impulse[:, None] * turn_a, axis=0),
-        dtheta_b=pair.dtheta_b + jnp.sum(impulse[:, None] * turn_b, axis=0),
+    return pair.moved_by(
+        dx_a=-pair.inv_mass_a * push,
+        dx_b=pair.inv_mass_b * push,
+        dtheta_a=-jnp.sum(impulse[:, None] * turn_a, axis=0),
+        dtheta_b=jnp.sum(impulse[:, None] * turn_b, axis=0),
     )
 
 
