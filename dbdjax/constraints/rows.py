@@ -96,14 +96,15 @@ class BodyPair(NamedTuple):
     @classmethod
     def of(cls, bodies: BodySet) -> BodyPair:
         """The pair view of a two-body `BodySet` (side a is row 0, side b row 1)."""
-        fields = [getattr(bodies, name)[i] for name in BodySet._fields[:-2] for i in (0, 1)]
+        fixed = [name for name in BodySet._fields if name not in ("dx", "dtheta")]
+        fields = [getattr(bodies, name)[i] for name in fixed for i in (0, 1)]
         return cls(*fields, jnp.concatenate([bodies.dx, bodies.dtheta]))
 
     def moved_by(self, dx_a=0.0, dx_b=0.0, dtheta_a=0.0, dtheta_b=0.0) -> BodyPair:
         """The pair moved further by dx_a, dx_b (m) and dtheta_a, dtheta_b (rad), each (3,) or 0."""
-        zero = jnp.zeros_like(self.dx_a)
-        change = jnp.stack([jnp.broadcast_to(v, zero.shape) + zero for v in (dx_a, dx_b, dtheta_a, dtheta_b)])
-        return self._replace(motion=self.motion + change)
+        shape, dtype = self.motion.shape[:-2] + (3,), self.motion.dtype
+        change = [jnp.broadcast_to(jnp.asarray(v, dtype), shape) for v in (dx_a, dx_b, dtheta_a, dtheta_b)]
+        return self._replace(motion=self.motion + jnp.stack(change, axis=-2))
 
     def displacements(self) -> tuple[jnp.ndarray, jnp.ndarray]:
         """(dx (2, 3), dtheta (2, 3)): the pair's displacements in `BodySet` row order."""
