@@ -420,11 +420,11 @@ def angular_response(pair: BodyPair, direction: jnp.ndarray, hold: PointHold | N
     at once) with the point of `hold` held (None: nothing held)."""
     inverse_mass, turn_a, turn_b = row_inverse_mass(pair, direction, direction)  # (76)
     zero = jnp.zeros_like(turn_a)
+    turned = jnp.stack([zero, zero, turn_a, -turn_b], axis=-2)  # as `BodyPair.motion`
     if hold is None:
-        return AngularResponse(inverse_mass, inverse_mass, zero, jnp.stack([zero, zero, turn_a, -turn_b], axis=-2))
+        return AngularResponse(inverse_mass, inverse_mass, zero, turned)
     held_mass, point_impulse = held_inverse_mass(inverse_mass, turn_a, turn_b, hold)
     pushed = point_impulse_motion(pair, hold.arm_a, hold.arm_b, point_impulse)
-    turned = jnp.stack([zero, zero, turn_a, -turn_b], axis=-2)
     return AngularResponse(inverse_mass, held_mass, point_impulse, pushed + turned)
 
 
