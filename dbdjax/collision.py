@@ -816,8 +816,8 @@ class ContactSlots(NamedTuple):
       (tangential speed above g h, the speed one substep of gravity gives): their friction is
       bounded by mu_d, otherwise by mu_s (DBD 7.1).
     active: (C, P) bool, a slot whose points are closer than the contact margin at X* or at the
-      start of the substep (the solve can move a body far from its prediction: a hand resting on
-      the floor that the push on its arm drags down).
+      start of the substep (the solve can move a body far from its prediction: a body resting on
+      the floor that a joint drags down).
     friction, dynamic_friction, restitution: (C,) the pair's combined material:
       sqrt(mu_1 mu_2) for both frictions and max(e_1, e_2), as Box2D combines them.
     allowed_depth: (C, P) m, how deep the point may still be at the end of the substep: what is
@@ -897,7 +897,8 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
         # Speculative slots: a point closer than the margin at X* or where it began the substep. The
         # solve moves bodies away from X* (joints drag them), and a point found at X* alone missed
         # what it was dragged into: over 10,000 pushed ragdoll steps (tests/test_ragdoll.py) an
-        # upper arm 5 mm above the floor went 41.5 mm into it (the deepest now: 9.8 mm).
+        # upper arm went 41.5 mm into the floor (the deepest now: 9.8 mm); a case that replays: an
+        # upper arm 4.8 mm above the floor, out of the margin at X*, dragged 32 mm into it.
         start_gap = _dot(offset, contacts.normal)
         active = contacts.active & (jnp.minimum(contacts.distance, start_gap) < model.options.contact_margin)
         relative = start_speed_b - start_speed_a

@@ -345,8 +345,8 @@ def test_ten_thousand_random_action_steps_with_pushes_stay_finite_jointed_and_ab
     an arm at full torque swings into its cone), 99% of steps below 16.4 mm (their largest gap);
     the deepest any shape went into the floor 9.8 mm. The gaps come from the sweeps not
     converging on violent motion: at 16 iterations the 99th percentile halves. (Before contact
-    slots were kept for points near the floor at the start of a substep, an upper arm a push threw
-    down from 5 mm above the floor went 41.5 mm into it.)"""
+    slots were kept for points near the floor at the start of a substep, an upper arm went 41.5 mm
+    into it one step after a push.)"""
     model, doll = _doll()
     envs, steps = 4, 2500
     low, high = jnp.asarray(doll.control_low, jnp.float32), jnp.asarray(doll.control_high, jnp.float32)
