@@ -897,7 +897,7 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
         # Speculative slots: a point closer than the margin at X* or where it began the substep. The
         # solve moves bodies away from X* (joints drag them), and a point found at X* alone missed
         # what it was dragged into: over 10,000 pushed ragdoll steps (tests/test_ragdoll.py) an
-        # upper arm went 41.5 mm into the floor (the deepest now: 9.8 mm); a case that replays: an
+        # upper arm went 41.5 mm into the floor (the deepest now: 12.8 mm); a case that replays: an
         # upper arm 4.8 mm above the floor, out of the margin at X*, dragged 32 mm into it.
         start_gap = _dot(offset, contacts.normal)
         active = contacts.active & (jnp.minimum(contacts.distance, start_gap) < model.options.contact_margin)
