@@ -30,6 +30,7 @@ last word.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -359,6 +360,14 @@ def _euler_angles(joint: Joints, flag: JointFlags, pair: BodyPair, rows: frozens
     axes_a, axes_b = row.rotate_pair(quat_a[None], quat_b[None], joint.local_axes_a, joint.local_axes_b)
     universal = flag.universal if {"universal", "gimbal"} <= rows else "universal" in rows
     return math.euler_angles(axes_a, axes_b, universal)
+
+
+def _carried(measured: jnp.ndarray, gradients: jnp.ndarray, pair: BodyPair) -> Callable[[BodyPair], jnp.ndarray]:
+    """Angles (...,) rad measured at `pair`, with their gradients (..., 3) w.r.t. a world turn of b
+    against a, as a function of the pair as later rows move it: carried to first order,
+    t + g . (the turn since), g fixed for one projection of the joint (`project`)."""
+    turn = pair.dtheta_b - pair.dtheta_a
+    return lambda moved: measured + math.dot(gradients, (moved.dtheta_b - moved.dtheta_a) - turn)
 
 
 def _unmoved(pair: BodyPair) -> BodyPair:
@@ -724,11 +733,8 @@ def project(
     # computed for the three at once.
     if {"rotor_euler", "euler_drive", "euler_limited"} & rows:
         measured_angles, euler_directions = _euler_angles(joint, flag, pair, rows)
-        measured_turn = pair.dtheta_b - pair.dtheta_a
+        euler_angles_now = _carried(measured_angles, euler_directions, pair)  # (3,) rad: t_k as rows move the pair
         euler_responses = row.angular_response(pair, euler_directions, hold)
-
-        def euler_angles_now(pair):  # (3,) rad: t_k at the pair as the rows have moved it
-            return measured_angles + math.matvec(euler_directions, (pair.dtheta_b - pair.dtheta_a) - measured_turn)
 
         def euler_response(k, sign):  # the response along sign * g_k
             return jax.tree.map(lambda x: x[k], euler_responses).times(sign)
@@ -737,11 +743,8 @@ def project(
     # limit rows: measured once, carried to first order along the axle, which they share.
     if {"rotor_hinge", "hinge_drive", "angular_motor", "has_angle_limits"} & rows:
         measured_angle, hinge_axis = hinge_angle(joint, pair)
-        measured_hinge_turn = pair.dtheta_b - pair.dtheta_a
+        hinge_angle_now = _carried(measured_angle, hinge_axis, pair)  # rad: the angle as rows move the pair
         hinge_response = row.angular_response(pair, hinge_axis, hold)
-
-        def hinge_angle_now(pair):  # rad: the angle at the pair as the rows have moved it
-            return measured_angle + math.dot(hinge_axis, (pair.dtheta_b - pair.dtheta_a) - measured_hinge_turn)
 
     def rotor_rule(k, active):  # a spring row with k h^2 = armature, undamped
         return row.spring(xi, active, joint.armature[k], 0.0)

@@ -77,21 +77,10 @@ class BodyPair(NamedTuple):
     ang_vel_b: jnp.ndarray
     motion: jnp.ndarray
 
-    @property
-    def dx_a(self) -> jnp.ndarray:
-        return self.motion[..., 0, :]
-
-    @property
-    def dx_b(self) -> jnp.ndarray:
-        return self.motion[..., 1, :]
-
-    @property
-    def dtheta_a(self) -> jnp.ndarray:
-        return self.motion[..., 2, :]
-
-    @property
-    def dtheta_b(self) -> jnp.ndarray:
-        return self.motion[..., 3, :]
+    dx_a = property(lambda self: self.motion[..., 0, :])
+    dx_b = property(lambda self: self.motion[..., 1, :])
+    dtheta_a = property(lambda self: self.motion[..., 2, :])
+    dtheta_b = property(lambda self: self.motion[..., 3, :])
 
     @classmethod
     def of(cls, bodies: BodySet) -> BodyPair:
