@@ -5,21 +5,68 @@ broadcasts over leading axes. Functions that divide by a norm or take an `arcsin
 that can meet a singular point go through the *double-where* trick, decided per element, so
 that the gradient is finite wherever the value is (JAX FAQ, "gradients contain NaN where using
 where"). The value at the singular point is the limit, not a scrubbed NaN.
+
+The products (dot, cross, matvec, quaternion product and rotation, normalisation) are written out
+component by component, which XLA fuses into the kernels around them; but reverse mode turns every
+component slice `v[..., k]` into a kernel of its own that pads the slice's cotangent back to the
+whole vector (on CPU about a fifth of a gradient's kernels). So each of them has a custom JVP
+whose tangent is a matrix times the tangent, summed over the last axis (`_times`), which reverse
+mode transposes into products again: Brax's humanoid, grad of a 100-step rollout, ran 1.9x faster
+(README "Gradients of the component-wise math").
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 # Below this squared length a vector is treated as zero (its direction is undefined).
 _TINY_SQUARED = 1e-24
 
 
+def _times(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
+    """matrix (..., n, m) times vector (..., m) as a product summed over the last axis: the form a
+    tangent takes here, which reverse mode transposes without slicing (module docstring)."""
+    return jnp.sum(matrix * vector[..., None, :], axis=-1)
+
+
+def _matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """a (..., n, k) times b (..., k, m), as products summed (no dot kernel)."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
+def _linear_tangents(tangent_maps: Callable) -> Callable:
+    """Decorator: a custom JVP for a function linear in each argument (or treated so: each map is
+    its derivative at the primals). tangent_maps(*primals) -> one function per argument, taking
+    that argument's tangent to the output's. Arguments with no tangent (symbolic zeros) are
+    skipped, so nothing is computed for them."""
+
+    def decorate(function: Callable) -> Callable:
+        function = jax.custom_jvp(function)
+
+        def rule(primals, tangents):
+            out = function(*primals)
+            maps = tangent_maps(*primals)
+            parts = [apply(t) for apply, t in zip(maps, tangents, strict=True) if not isinstance(t, SymbolicZero)]
+            total = sum(parts[1:], parts[0]) if parts else jnp.zeros_like(out)
+            return out, jnp.broadcast_to(total, out.shape)
+
+        function.defjvp(rule, symbolic_zeros=True)
+        return function
+
+    return decorate
+
+
+@_linear_tangents(lambda a, b: (lambda t: jnp.sum(t * b, axis=-1), lambda t: jnp.sum(a * t, axis=-1)))
 def dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """Dot product over the last axis, (..., 3) x (..., 3) -> (...), written out so it fuses."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
+@_linear_tangents(lambda a, b: (lambda t: -_times(skew(b), t), lambda t: _times(skew(a), t)))
 def cross(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """Cross product over the last axis, written out so it fuses well on every backend."""
     ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
@@ -104,6 +151,18 @@ def quat_identity(shape: tuple[int, ...] = ()) -> jnp.ndarray:
     return jnp.zeros(shape + (4,)).at[..., 0].set(1.0)
 
 
+def _product_tangents(p, q):
+    """p * q = R(q) p = L(p) q: the 4 x 4 matrices of the Hamilton product by q on the right and by
+    p on the left, as the derivatives along p and along q."""
+    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = lambda *r: jnp.stack([jnp.stack(row, axis=-1) for row in r], axis=-2)  # noqa: E731
+    right = rows([qw, -qx, -qy, -qz], [qx, qw, qz, -qy], [qy, -qz, qw, qx], [qz, qy, -qx, qw])
+    left = rows([pw, -px, -py, -pz], [px, pw, -pz, py], [py, pz, pw, -px], [pz, -py, px, pw])
+    return (lambda t: _times(right, t)), (lambda t: _times(left, t))
+
+
+@_linear_tangents(_product_tangents)
 def quat_multiply(p: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
     """Hamilton product p * q (rotate by q, then by p)."""
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
@@ -124,6 +183,7 @@ def quat_conjugate(q: jnp.ndarray) -> jnp.ndarray:
     return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
+@jax.custom_jvp
 def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
     """Unit quaternion; a zero quaternion becomes the identity."""
     # Summed component by component, not by a reduction: a reduce ends an XLA fusion on CPU, and
@@ -135,6 +195,36 @@ def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
     return jnp.where(is_zero, identity, q / jnp.sqrt(safe))
 
 
+@quat_normalize.defjvp
+def _quat_normalize_tangent(primals, tangents):
+    """d(q / |q|) = (dq - n (n . dq)) / |q| with n = q / |q| (0 at the zero quaternion)."""
+    (q,), (dq,) = primals, tangents
+    unit = quat_normalize(q)
+    squared = jnp.sum(q * q, axis=-1, keepdims=True)
+    is_zero = squared <= _TINY_SQUARED
+    norm = jnp.sqrt(jnp.where(is_zero, 1.0, squared))
+    along = jnp.sum(unit * dq, axis=-1, keepdims=True)
+    return unit, jnp.where(is_zero, 0.0, (dq - unit * along) / norm)
+
+
+def _rotation_tangents(q, v):
+    """Derivatives of q v q* = v + w t + u x t (t = 2 u x v, q = (w, u)): along q the (..., 3, 4)
+    matrix [t | -2 w [v]x - [t]x - 2 [u]x [v]x], along v the rotation I + 2 w [u]x + 2 [u]x^2."""
+    w, u = q[..., :1, None], q[..., 1:]
+    skew_u = skew(u)
+
+    def along_q(tangent):
+        t = 2.0 * cross(u, v)
+        along_u = -2.0 * w * skew(v) - skew(t) - 2.0 * _matmul(skew_u, skew(v))
+        return _times(jnp.concatenate([t[..., None], jnp.broadcast_to(along_u, t.shape + (3,))], axis=-1), tangent)
+
+    def along_v(tangent):
+        return _times(jnp.eye(3, dtype=q.dtype) + 2.0 * w * skew_u + 2.0 * _matmul(skew_u, skew_u), tangent)
+
+    return along_q, along_v
+
+
+@_linear_tangents(_rotation_tangents)
 def quat_rotate(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
     """Rotate vector v (..., 3) by unit quaternion q (..., 4): v' = q v q*."""
     w = q[..., :1]
@@ -217,6 +307,7 @@ def angle_between(a: jnp.ndarray, b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndar
     return safe_atan2(sine, dot(a, b)), axis
 
 
+@_linear_tangents(lambda m, v: (lambda t: jnp.sum(t * v[..., None, :], axis=-1), lambda t: _times(m, t)))
 def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
     """matrix (..., 3, 3) times vector (..., 3), written out (no reduction op) so it fuses."""
     return (

@@ -94,3 +94,72 @@ def test_shortest_rotation_turns_as_the_vector_does_by_at_most_pi():
     np.testing.assert_allclose(same, 1.0, atol=1e-5)  # q and -q: the same rotation
     below = angles <= np.pi
     np.testing.assert_array_equal(np.asarray(shortest)[below], np.asarray(vectors)[below])
+
+
+# The written-out products as JAX differentiates them by itself (the references for their custom
+# JVPs), and the shapes each is called with in the engine (broadcasts included).
+def _plain_dot(a, b):
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _plain_cross(a, b):
+    return jnp.cross(a, b)
+
+
+def _plain_rotate(q, v):
+    t = 2.0 * jnp.cross(q[..., 1:], v)
+    return v + q[..., :1] * t + jnp.cross(q[..., 1:], t)
+
+
+def _plain_multiply(p, q):
+    return jnp.concatenate([p[..., :1] * q[..., :1] - jnp.sum(p[..., 1:] * q[..., 1:], -1, keepdims=True),
+                            p[..., :1] * q[..., 1:] + q[..., :1] * p[..., 1:] + jnp.cross(p[..., 1:], q[..., 1:])],
+                           axis=-1)  # fmt: skip
+
+
+def _plain_normalize(q):
+    squared = jnp.sum(q * q, axis=-1, keepdims=True)
+    is_zero = squared <= 1e-24
+    return jnp.where(is_zero, jnp.array([1.0, 0.0, 0.0, 0.0]), q / jnp.sqrt(jnp.where(is_zero, 1.0, squared)))
+
+
+PRODUCTS = [
+    (math.dot, _plain_dot, [((5, 3), (5, 3)), ((5, 3), (3,)), ((4, 1, 3), (4, 3, 3))]),
+    (math.cross, _plain_cross, [((5, 3), (5, 3)), ((3,), (5, 3)), ((4, 1, 3), (4, 2, 3))]),
+    (math.matvec, lambda m, v: jnp.einsum("...ij,...j->...i", m, v), [((5, 3, 3), (5, 3)), ((3, 3), (5, 3))]),
+    (math.quat_rotate, _plain_rotate, [((5, 4), (5, 3)), ((5, 4), (3,)), ((5, 1, 4), (5, 3, 3)), ((4,), (5, 3))]),
+    (math.quat_multiply, _plain_multiply, [((5, 4), (5, 4)), ((4,), (5, 4))]),
+]
+
+
+@pytest.mark.parametrize("function, plain, shapes", PRODUCTS, ids=lambda x: getattr(x, "__name__", ""))
+def test_products_have_the_derivatives_of_their_written_out_formulas(function, plain, shapes, float64):
+    rng = np.random.default_rng(5)
+    for shape_a, shape_b in shapes:  # not unit quaternions: the derivatives hold for any q
+        a, b = jnp.asarray(rng.normal(size=shape_a)), jnp.asarray(rng.normal(size=shape_b))
+        np.testing.assert_allclose(function(a, b), plain(a, b), rtol=1e-13, atol=1e-13)
+        for argnums in (0, 1, (0, 1)):
+            expected = jax.tree.leaves(jax.jacrev(lambda a, b: jnp.sin(plain(a, b)), argnums)(a, b))
+            for mode in (jax.jacrev, jax.jacfwd):
+                got = jax.tree.leaves(mode(lambda a, b: jnp.sin(function(a, b)), argnums)(a, b))
+                for g, e in zip(got, expected, strict=True):
+                    np.testing.assert_allclose(g, e, rtol=1e-12, atol=1e-12)
+
+
+def test_quat_normalize_has_the_derivative_of_its_formula_and_zero_at_the_zero_quaternion(float64):
+    q = jnp.asarray(np.random.default_rng(6).normal(size=(5, 4))).at[2].set(0.0)
+    for mode in (jax.jacrev, jax.jacfwd):
+        np.testing.assert_allclose(
+            mode(math.quat_normalize)(q), jax.jacrev(_plain_normalize)(q), rtol=1e-13, atol=1e-13
+        )
+    assert np.all(np.asarray(jax.jacrev(math.quat_normalize)(q))[2, :, 2] == 0.0)
+
+
+def test_gradients_of_the_products_slice_no_vector():
+    """Reverse mode pads the cotangent of every slice of a vector back to the vector, a kernel each:
+    the products' custom JVPs keep the gradient of a rotation free of them."""
+    q, v = random_quats(4), jnp.ones((4, 3))
+    loss = lambda q, v: jnp.sum(math.cross(math.quat_rotate(math.quat_multiply(q, q), v), v))  # noqa: E731
+    plain = lambda q, v: jnp.sum(_plain_cross(_plain_rotate(_plain_multiply(q, q), v), v))  # noqa: E731
+    text = jax.jit(jax.grad(loss, (0, 1))).lower(q, v).as_text()
+    assert "pad" not in text and "pad" in jax.jit(jax.grad(plain, (0, 1))).lower(q, v).as_text()
