@@ -9,10 +9,10 @@ where"). The value at the singular point is the limit, not a scrubbed NaN.
 The products (dot, cross, matvec, quaternion product and rotation, normalisation) are written out
 component by component, which XLA fuses into the kernels around them; but reverse mode turns every
 component slice `v[..., k]` into a kernel of its own that pads the slice's cotangent back to the
-whole vector (on CPU about a fifth of a gradient's kernels). So each of them has a custom JVP
-whose tangent is a matrix times the tangent, summed over the last axis (`_times`), which reverse
-mode transposes into products again: Brax's humanoid, grad of a 100-step rollout, ran 1.9x faster
-(README "Gradients of the component-wise math").
+whole vector (on CPU a sixth of the kernels of Brax's ant's gradient). So each of them has a
+custom JVP whose tangent is a matrix times the tangent, summed over the last axis (`_times`),
+which reverse mode transposes into products again: Brax's humanoid, grad of a 100-step rollout,
+ran 1.9x faster (README, "Session 39: gradients of the component-wise math").
 """
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ def _matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
 
 
 def _linear_tangents(tangent_maps: Callable) -> Callable:
-    """Decorator: a custom JVP for a function linear in each argument (or treated so: each map is
-    its derivative at the primals). tangent_maps(*primals) -> one function per argument, taking
-    that argument's tangent to the output's. Arguments with no tangent (symbolic zeros) are
-    skipped, so nothing is computed for them."""
+    """Decorator: a custom JVP from the derivative along each argument. tangent_maps(*primals) ->
+    one linear function per argument, taking that argument's tangent to the output's (its
+    derivative at the primals). Arguments with no tangent (symbolic zeros) are skipped, so nothing
+    is computed for them."""
 
     def decorate(function: Callable) -> Callable:
         function = jax.custom_jvp(function)
