@@ -214,8 +214,8 @@ def _rotation_tangents(q, v):
     skew_u = skew(u)
 
     def along_q(tangent):
-        t = 2.0 * cross(u, v)
-        along_u = -2.0 * w * skew(v) - skew(t) - 2.0 * _matmul(skew_u, skew(v))
+        t, skew_v = 2.0 * cross(u, v), skew(v)
+        along_u = -2.0 * w * skew_v - skew(t) - 2.0 * _matmul(skew_u, skew_v)
         return _times(jnp.concatenate([t[..., None], jnp.broadcast_to(along_u, t.shape + (3,))], axis=-1), tangent)
 
     def along_v(tangent):
