@@ -7,21 +7,29 @@ that the gradient is finite wherever the value is (JAX FAQ, "gradients contain N
 where"). The value at the singular point is the limit, not a scrubbed NaN.
 
 The products (dot, cross, matvec, quaternion product and rotation, normalisation) are written out
-component by component, which XLA fuses into the kernels around them; but reverse mode turns every
-component slice `v[..., k]` into a kernel of its own that pads the slice's cotangent back to the
-whole vector (on CPU a sixth of the kernels of Brax's ant's gradient). So each of them has a
-custom JVP whose tangent is a matrix times the tangent, summed over the last axis (`_times`),
-which reverse mode transposes into products again: Brax's humanoid, grad of a 100-step rollout,
-ran 1.9x faster (README, "Session 39: gradients of the component-wise math").
+component by component, which XLA fuses into the kernels around them. Each is a JAX primitive of
+its own (`_written_out_primitive`), for two reasons:
+- Its derivative is a matrix (the derivative at the primals) times the tangent, summed over the
+  last axis (`_times`), which reverse mode transposes into products again. Left to JAX, every
+  component slice `v[..., k]` would become, in reverse mode, a kernel of its own that pads the
+  slice's cotangent back to the whole vector (on CPU a sixth of the kernels of Brax's ant's
+  gradient): Brax's humanoid's gradient ran 1.9x faster (README, "Session 39").
+- A traced program holds one equation for a product instead of its ~25 component operations, and
+  every transformation (vmap, linearize, remat, transpose) walks the program: the humanoid's step
+  is traced as 9,075 equations instead of 20,193, and its gradient traced in 8 s instead of 21
+  (README, "Session 40: the products as primitives"). Only the lowering to XLA writes the
+  components out.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import SymbolicZero
+import numpy as np
+from jax.core import ShapedArray
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 
 # Below this squared length a vector is treated as zero (its direction is undefined).
 _TINY_SQUARED = 1e-24
@@ -38,35 +46,104 @@ def _matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
-def _linear_tangents(tangent_maps: Callable) -> Callable:
-    """Decorator: a custom JVP from the derivative along each argument. tangent_maps(*primals) ->
-    one linear function per argument, taking that argument's tangent to the output's (its
-    derivative at the primals). Arguments with no tangent (symbolic zeros) are skipped, so nothing
-    is computed for them."""
+def _written_out_primitive(
+    name: str, item_ranks: tuple[int, ...], item_shape: Callable[..., tuple], tangent_maps: Callable
+) -> Callable[[Callable], Callable]:
+    """Decorator: `written_out(*arrays)`, a function broadcasting over leading axes, as a JAX
+    primitive (module docstring) that lowers to it.
 
-    def decorate(function: Callable) -> Callable:
-        function = jax.custom_jvp(function)
+    item_ranks: how many trailing axes each argument's item has (a vector 1, a matrix 2).
+    item_shape(*argument_items) -> the output item's shape; raises ValueError where they do not fit.
+    tangent_maps(*primals) -> one linear function per argument, taking that argument's tangent to
+    the output's (its derivative at the primals), written so that reverse mode transposes it
+    without slices (`_times`). Arguments with no tangent are skipped. The decorated function
+    promotes its arguments to one dtype.
+    """
 
-        def rule(primals, tangents):
-            out = function(*primals)
+    def decorate(written_out: Callable) -> Callable:
+        primitive = Primitive(name)
+        primitive.def_impl(written_out)
+        mlir.register_lowering(primitive, mlir.lower_fun(written_out, multiple_results=False))
+
+        def abstract(*avals):
+            leads = [a.shape[: a.ndim - r] for a, r in zip(avals, item_ranks, strict=True)]
+            items = [a.shape[a.ndim - r :] for a, r in zip(avals, item_ranks, strict=True)]
+            try:
+                leading = np.broadcast_shapes(*leads)
+            except ValueError as error:
+                raise ValueError(f"{name}: leading axes {leads} do not broadcast") from error
+            if len({a.dtype for a in avals}) != 1:
+                raise TypeError(f"{name}: arguments of dtypes {[str(a.dtype) for a in avals]}")
+            out_item = item_shape(*items)
+            return ShapedArray(tuple(leading) + out_item, avals[0].dtype, weak_type=all(a.weak_type for a in avals))
+
+        primitive.def_abstract_eval(abstract)
+
+        def derivative(primals, tangents):
+            out = primitive.bind(*primals)
             maps = tangent_maps(*primals)
-            parts = [apply(t) for apply, t in zip(maps, tangents, strict=True) if not isinstance(t, SymbolicZero)]
-            total = sum(parts[1:], parts[0]) if parts else jnp.zeros_like(out)
-            return out, jnp.broadcast_to(total, out.shape)
+            parts = [apply(t) for apply, t in zip(maps, tangents, strict=True) if type(t) is not ad.Zero]
+            if not parts:
+                return out, ad.Zero.from_primal_value(out)
+            return out, jnp.broadcast_to(sum(parts[1:], parts[0]), out.shape)
 
-        function.defjvp(rule, symbolic_zeros=True)
-        return function
+        ad.primitive_jvps[primitive] = derivative
+
+        def batched(args, dims):
+            # The batch axis moves to the front of every mapped argument (dims: None where not
+            # mapped), followed by unit axes up to the most leading axes of any argument, so that
+            # the unmapped arguments broadcast against it.
+            size = next(x.shape[d] for x, d in zip(args, dims, strict=True) if d is not None)
+            leading = max(x.ndim - (d is not None) - r for x, d, r in zip(args, dims, item_ranks, strict=True))
+            moved = []
+            for x, d, r in zip(args, dims, item_ranks, strict=True):
+                if d is not None:
+                    x = jnp.moveaxis(x, d, 0)
+                    shape = (size,) + (1,) * (leading - (x.ndim - 1 - r)) + x.shape[1:]
+                    x = x if x.shape == shape else jnp.reshape(x, shape)
+                moved.append(x)
+            return primitive.bind(*moved), 0
+
+        batching.primitive_batchers[primitive] = batched
+
+        def bind(*arrays: jnp.ndarray) -> jnp.ndarray:
+            dtype = jnp.result_type(*arrays)
+            return primitive.bind(*(jnp.asarray(a, dtype) for a in arrays))
+
+        bind.__name__, bind.__doc__ = written_out.__name__, written_out.__doc__
+        return bind
 
     return decorate
 
 
-@_linear_tangents(lambda a, b: (lambda t: jnp.sum(t * b, axis=-1), lambda t: jnp.sum(a * t, axis=-1)))
+def _items(size: int, out: tuple[int, ...] | None = None) -> Callable[..., tuple]:
+    """item_shape for products of vectors of `size` components: the output item `out` (default:
+    a vector of `size`)."""
+
+    def shape(*items):
+        if any(item != (size,) for item in items):
+            raise ValueError(f"expected items of shape ({size},), got {items}")
+        return (size,) if out is None else out
+
+    return shape
+
+
+def _dot_tangents(a, b):
+    return (lambda t: jnp.sum(t * b, axis=-1)), (lambda t: jnp.sum(a * t, axis=-1))
+
+
+@_written_out_primitive("dbdjax_dot", (1, 1), _items(3, ()), _dot_tangents)
 def dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """Dot product over the last axis, (..., 3) x (..., 3) -> (...), written out so it fuses."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
-@_linear_tangents(lambda a, b: (lambda t: -_times(skew(b), t), lambda t: _times(skew(a), t)))
+def _cross_tangents(a, b):
+    """a x b = -[b]x a = [a]x b."""
+    return (lambda t: -_times(skew(b), t)), (lambda t: _times(skew(a), t))
+
+
+@_written_out_primitive("dbdjax_cross", (1, 1), _items(3), _cross_tangents)
 def cross(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """Cross product over the last axis, written out so it fuses well on every backend."""
     ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
@@ -162,7 +239,7 @@ def _product_tangents(p, q):
     return (lambda t: _times(right, t)), (lambda t: _times(left, t))
 
 
-@_linear_tangents(_product_tangents)
+@_written_out_primitive("dbdjax_quat_multiply", (1, 1), _items(4), _product_tangents)
 def quat_multiply(p: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
     """Hamilton product p * q (rotate by q, then by p)."""
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
@@ -183,7 +260,16 @@ def quat_conjugate(q: jnp.ndarray) -> jnp.ndarray:
     return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
-@jax.custom_jvp
+def _normalisation_tangent(q):
+    """d(q / |q|) = (dq - n (n . dq)) / |q| with n = q / |q| (0 at the zero quaternion)."""
+    unit = quat_normalize(q)
+    squared = jnp.sum(q * q, axis=-1, keepdims=True)
+    is_zero = squared <= _TINY_SQUARED
+    norm = jnp.sqrt(jnp.where(is_zero, 1.0, squared))
+    return (lambda dq: jnp.where(is_zero, 0.0, (dq - unit * jnp.sum(unit * dq, axis=-1, keepdims=True)) / norm),)
+
+
+@_written_out_primitive("dbdjax_quat_normalize", (1,), _items(4), _normalisation_tangent)
 def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
     """Unit quaternion; a zero quaternion becomes the identity."""
     # Summed component by component, not by a reduction: a reduce ends an XLA fusion on CPU, and
@@ -193,18 +279,6 @@ def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
     safe = jnp.where(is_zero, 1.0, squared)
     identity = quat_identity(q.shape[:-1]).astype(q.dtype)
     return jnp.where(is_zero, identity, q / jnp.sqrt(safe))
-
-
-@quat_normalize.defjvp
-def _quat_normalize_tangent(primals, tangents):
-    """d(q / |q|) = (dq - n (n . dq)) / |q| with n = q / |q| (0 at the zero quaternion)."""
-    (q,), (dq,) = primals, tangents
-    unit = quat_normalize(q)
-    squared = jnp.sum(q * q, axis=-1, keepdims=True)
-    is_zero = squared <= _TINY_SQUARED
-    norm = jnp.sqrt(jnp.where(is_zero, 1.0, squared))
-    along = jnp.sum(unit * dq, axis=-1, keepdims=True)
-    return unit, jnp.where(is_zero, 0.0, (dq - unit * along) / norm)
 
 
 def _rotation_tangents(q, v):
@@ -224,7 +298,13 @@ def _rotation_tangents(q, v):
     return along_q, along_v
 
 
-@_linear_tangents(_rotation_tangents)
+def _rotation_items(q_item, v_item):
+    if q_item != (4,) or v_item != (3,):
+        raise ValueError(f"quat_rotate takes (..., 4) and (..., 3), got items {q_item} and {v_item}")
+    return (3,)
+
+
+@_written_out_primitive("dbdjax_quat_rotate", (1, 1), _rotation_items, _rotation_tangents)
 def quat_rotate(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
     """Rotate vector v (..., 3) by unit quaternion q (..., 4): v' = q v q*."""
     w = q[..., :1]
@@ -307,7 +387,17 @@ def angle_between(a: jnp.ndarray, b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndar
     return safe_atan2(sine, dot(a, b)), axis
 
 
-@_linear_tangents(lambda m, v: (lambda t: jnp.sum(t * v[..., None, :], axis=-1), lambda t: _times(m, t)))
+def _matvec_items(matrix_item, vector_item):
+    if matrix_item != (3, 3) or vector_item != (3,):
+        raise ValueError(f"matvec takes (..., 3, 3) and (..., 3), got items {matrix_item} and {vector_item}")
+    return (3,)
+
+
+def _matvec_tangents(matrix, vector):
+    return (lambda t: jnp.sum(t * vector[..., None, :], axis=-1)), (lambda t: _times(matrix, t))
+
+
+@_written_out_primitive("dbdjax_matvec", (2, 1), _matvec_items, _matvec_tangents)
 def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
     """matrix (..., 3, 3) times vector (..., 3), written out (no reduction op) so it fuses."""
     return (
