@@ -62,7 +62,6 @@ def _written_out_primitive(
 
     def decorate(written_out: Callable) -> Callable:
         primitive = Primitive(name)
-        primitive.def_impl(written_out)
         mlir.register_lowering(primitive, mlir.lower_fun(written_out, multiple_results=False))
 
         def abstract(*avals):
@@ -74,10 +73,19 @@ def _written_out_primitive(
                 raise ValueError(f"{name}: leading axes {leads} do not broadcast") from error
             if len({a.dtype for a in avals}) != 1:
                 raise TypeError(f"{name}: arguments of dtypes {[str(a.dtype) for a in avals]}")
-            out_item = item_shape(*items)
+            try:
+                out_item = item_shape(*items)
+            except ValueError as error:
+                raise ValueError(f"{name}: {error}") from None
             return ShapedArray(tuple(leading) + out_item, avals[0].dtype, weak_type=all(a.weak_type for a in avals))
 
         primitive.def_abstract_eval(abstract)
+
+        def eager(*arrays):  # outside jit: the same checks of the arguments, then the components
+            abstract(*(ShapedArray(np.shape(x), x.dtype) for x in arrays))
+            return written_out(*arrays)
+
+        primitive.def_impl(eager)
 
         def derivative(primals, tangents):
             out = primitive.bind(*primals)
@@ -122,7 +130,7 @@ def _items(size: int, out: tuple[int, ...] | None = None) -> Callable[..., tuple
 
     def shape(*items):
         if any(item != (size,) for item in items):
-            raise ValueError(f"expected items of shape ({size},), got {items}")
+            raise ValueError(f"takes items of shape ({size},), got {tuple(items)}")
         return (size,) if out is None else out
 
     return shape
@@ -300,7 +308,7 @@ def _rotation_tangents(q, v):
 
 def _rotation_items(q_item, v_item):
     if q_item != (4,) or v_item != (3,):
-        raise ValueError(f"quat_rotate takes (..., 4) and (..., 3), got items {q_item} and {v_item}")
+        raise ValueError(f"takes (..., 4) and (..., 3), got items {q_item} and {v_item}")
     return (3,)
 
 
@@ -389,7 +397,7 @@ def angle_between(a: jnp.ndarray, b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndar
 
 def _matvec_items(matrix_item, vector_item):
     if matrix_item != (3, 3) or vector_item != (3,):
-        raise ValueError(f"matvec takes (..., 3, 3) and (..., 3), got items {matrix_item} and {vector_item}")
+        raise ValueError(f"takes (..., 3, 3) and (..., 3), got items {matrix_item} and {vector_item}")
     return (3,)
 
 
