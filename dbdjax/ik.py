@@ -555,16 +555,6 @@ def end_effector(chain: Chain, angles: jnp.ndarray) -> jnp.ndarray:
     return forward_kinematics(chain, angles).end_effector
 
 
-def _matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
-    """(..., 3, 3) @ (..., 3, 3) written out elementwise: it fuses, where a batched dot of 3x3s
-    costs XLA far more to compile (and to differentiate) than the 27 multiplications."""
-    return (
-        a[..., :, 0, None] * b[..., None, 0, :]
-        + a[..., :, 1, None] * b[..., None, 1, :]
-        + a[..., :, 2, None] * b[..., None, 2, :]
-    )
-
-
 def pivot_inertias(chain: Chain, pivot: jnp.ndarray, quat: jnp.ndarray, com: jnp.ndarray) -> jnp.ndarray:
     """(N, 3, 3) kg m^2, world inertia of links k..N-1 about pivot k, DBD (133).
 
@@ -573,7 +563,8 @@ def pivot_inertias(chain: Chain, pivot: jnp.ndarray, quat: jnp.ndarray, com: jnp
     lengths IK is used on this costs less than the recursive form's sequential pass.
     """
     rotation = math.quat_to_matrix(quat)
-    world = _matmul(_matmul(rotation, chain.inertia), jnp.swapaxes(rotation, -1, -2))  # (N, 3, 3) about each com
+    # (N, 3, 3) about each com
+    world = math.matmul(math.matmul(rotation, chain.inertia), jnp.swapaxes(rotation, -1, -2))
     d = com[None, :, :] - pivot[:, None, :]  # (k, i, 3)
     eye = jnp.eye(3, dtype=d.dtype)
     shifted = chain.mass[None, :, None, None] * (
@@ -664,7 +655,8 @@ def _iteration(chain, method, constraint, angles, target, alpha, max_step, scale
         hinge_mobility = jnp.where(hinge[:, None, None], hinge_mobility, 0.0)
     if has_ball:
         skew = math.skew(lever)
-        ball_mobility = jnp.sum(jnp.where(hinge[:, None, None], 0.0, -_matmul(_matmul(skew, metric.inverse), skew)), 0)
+        turned = math.matmul(math.matmul(skew, metric.inverse), skew)
+        ball_mobility = jnp.sum(jnp.where(hinge[:, None, None], 0.0, -turned), 0)
     else:
         ball_mobility = jnp.zeros_like(eye)
 

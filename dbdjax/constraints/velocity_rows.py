@@ -153,7 +153,7 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
             coupling = coupling + (eye - projector)  # invert on range(P) only (module docstring)
         mass, _ = row.definite_inverse(coupling, active)  # singular only when neither side can move
         if projector is not None:
-            mass = _matmul(_matmul(projector, mass), projector)
+            mass = math.matmul(math.matmul(projector, mass), projector)
         mix = jnp.zeros_like(mass)
     else:
         mix = math.inverse3(eye + softness * coupling)
@@ -166,11 +166,6 @@ def _row_products(rows_1, rows_2):
     """(..., K, K) dot products of every row of rows_1 (..., K, 3) with every row of rows_2, written
     elementwise: a batched matrix product compiles to far more code on CPU than these sums."""
     return jnp.sum(rows_1[..., :, None, :] * rows_2[..., None, :, :], axis=-1)
-
-
-def _matmul(a, b):
-    """a @ b for (3, 3) matrices, elementwise (see `_row_products`)."""
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
 def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):

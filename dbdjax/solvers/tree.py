@@ -148,14 +148,6 @@ def schedule(
     return tree_joint, tree_body, tree_parent
 
 
-def _mm(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
-    """a (..., n, k) @ b (..., k, m) as k broadcast products (no dot op: it fuses on CPU)."""
-    total = a[..., :, 0, None] * b[..., None, 0, :]
-    for k in range(1, a.shape[-1]):
-        total = total + a[..., :, k, None] * b[..., None, k, :]
-    return total
-
-
 def _mv(a: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
     """a (..., n, k) @ v (..., k) as k broadcast products."""
     total = a[..., :, 0] * v[..., None, 0]
@@ -182,11 +174,11 @@ def _inverse(matrix: jnp.ndarray) -> jnp.ndarray:
     a, b = matrix[..., :-3, :-3], matrix[..., :-3, -3:]
     c, d = matrix[..., -3:, :-3], matrix[..., -3:, -3:]
     a_inv = _inverse(a)
-    a_inv_b, c_a_inv = _mm(a_inv, b), _mm(c, a_inv)
-    s_inv = math.inverse3(d - _mm(c, a_inv_b))
-    top_right = -_mm(a_inv_b, s_inv)
-    top_left = a_inv - _mm(top_right, c_a_inv)
-    bottom_left = -_mm(s_inv, c_a_inv)
+    a_inv_b, c_a_inv = math.matmul(a_inv, b), math.matmul(c, a_inv)
+    s_inv = math.inverse3(d - math.matmul(c, a_inv_b))
+    top_right = -math.matmul(a_inv_b, s_inv)
+    top_left = a_inv - math.matmul(top_right, c_a_inv)
+    bottom_left = -math.matmul(s_inv, c_a_inv)
     top = jnp.concatenate([top_left, top_right], axis=-1)
     return jnp.concatenate([top, jnp.concatenate([bottom_left, s_inv], axis=-1)], axis=-2)
 
@@ -544,8 +536,8 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         index, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
         jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12]
         d_inv = _inverse(carry[index[:, 0]])
-        s_inv = _inverse(alpha[:, :, None] * eye + _mm(_mm(jc, d_inv), _transpose(jc)))
-        carry = carry.at[index[:, 1]].add(_mm(_mm(_transpose(jp), s_inv), jp))
+        s_inv = _inverse(alpha[:, :, None] * eye + math.matmul(math.matmul(jc, d_inv), _transpose(jc)))
+        carry = carry.at[index[:, 1]].add(math.matmul(math.matmul(_transpose(jp), s_inv), jp))
         return carry, jnp.concatenate([padded(d_inv), padded(s_inv)], axis=-1)  # (W, max(6, R), 6 + R)
 
     _, inverses = jax.lax.scan(eliminate, blocks, (indices, matrices))
@@ -575,8 +567,8 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
         jc, jp = packed[..., :6], packed[..., 6:12]
         d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
         z_body = z[index[:, 0]]
-        z_joint = -c - _mv(_mm(jc, d_inv), z_body)
-        z = z.at[index[:, 1]].add(_mv(_mm(_transpose(jp), s_inv), z_joint))
+        z_joint = -c - _mv(math.matmul(jc, d_inv), z_body)
+        z = z.at[index[:, 1]].add(_mv(math.matmul(_transpose(jp), s_inv), z_joint))
         return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
     _, right = jax.lax.scan(eliminate, start, (factors.indices, factors.matrices, factors.inverses, gap))
