@@ -24,6 +24,7 @@ its own (`_written_out_primitive`), for two reasons:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import jax
@@ -135,8 +136,7 @@ def _written_out_primitive(
                 return written_out(*arrays)
             return primitive.bind(*arrays)
 
-        bind.__name__, bind.__doc__ = written_out.__name__, written_out.__doc__
-        return bind
+        return functools.update_wrapper(bind, written_out)
 
     return decorate
 
