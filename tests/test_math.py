@@ -183,12 +183,15 @@ def test_products_trace_as_one_equation_each(function, plain, shapes):
     is lowered to XLA), which every transformation of the step then walks once instead of ~25 times."""
     shape_a, shape_b = shapes[0]
     assert _equations(jax.make_jaxpr(function)(jnp.ones(shape_a), jnp.ones(shape_b)).jaxpr) == 1
+
+
+def test_quat_normalize_traces_as_one_equation():
     assert _equations(jax.make_jaxpr(math.quat_normalize)(jnp.ones((5, 4))).jaxpr) == 1
 
 
 @pytest.mark.parametrize("function, plain, shapes", PRODUCTS, ids=lambda x: getattr(x, "__name__", ""))
 def test_products_under_vmap_equal_their_values_one_by_one(function, plain, shapes, float64):
-    """vmap over either argument or both, with the batch axis anywhere, and the gradient under vmap."""
+    """vmap over either argument or both, with the batch axis first or last, and the gradient under vmap."""
     rng = np.random.default_rng(7)
     for shape_a, shape_b in shapes:
         a, b = jnp.asarray(rng.normal(size=(2,) + shape_a)), jnp.asarray(rng.normal(size=(2,) + shape_b))
