@@ -24,7 +24,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from dbdjax import collision, integrator
+from dbdjax import collision, integrator, sharding
 from dbdjax.model import Model, State
 from dbdjax.solvers import dbd, impulse
 
@@ -89,6 +89,7 @@ def step(model: Model, state: State, control: jnp.ndarray | None = None) -> Stat
         one_substep = jax.checkpoint(one_substep)
     if options.substeps == 1:
         return one_substep(state)
+    state = sharding.varying_like(state, state, control)  # under shard_map: as varying as what comes back
     state, _ = jax.lax.scan(lambda s, _: (one_substep(s), None), state, None, length=options.substeps)
     return state
 
@@ -114,7 +115,8 @@ def rollout(
         s = step(model, s, control)
         return s, s
 
-    return jax.lax.scan(one_step, _ready(model, state), controls)
+    state = _ready(model, state)
+    return jax.lax.scan(one_step, sharding.varying_like(state, state, controls), controls)
 
 
 def is_finite(state: State) -> jnp.ndarray:

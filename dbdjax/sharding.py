@@ -46,3 +46,22 @@ def shard_batch(tree: Any, mesh: Mesh) -> Any:
 def replicate(tree: Any, mesh: Mesh) -> Any:
     """Place every array of `tree` whole on every device of the mesh (for a model's parameters)."""
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def varying_like(tree: Any, *references: Any) -> Any:
+    """`tree` with every array made varying over each `jax.shard_map` axis that an array of
+    `references` varies over (no change outside shard_map, where nothing varies).
+
+    A `lax.scan` under shard_map requires its carry to come back with the type it went in with; a
+    carry that starts as constants (zeros: no multiplier yet) and comes back computed from the
+    sharded state would come back varying. So each scan's first carry is made as varying as the
+    inputs its body reads (`references`), as JAX's documentation advises (`jax.lax.pcast`)."""
+    axes = frozenset().union(*(jax.typeof(leaf).mat.varying for leaf in jax.tree.leaves(references)))
+    if not axes:
+        return tree
+
+    def cast(leaf):
+        missing = tuple(sorted(axes - jax.typeof(leaf).mat.varying))
+        return jax.lax.pcast(leaf, missing, to="varying") if missing else leaf
+
+    return jax.tree.map(cast, tree)

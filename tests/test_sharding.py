@@ -39,6 +39,33 @@ SCRIPT = textwrap.dedent(
     """
 )
 
+SHARD_MAP = textwrap.dedent(
+    """
+    from pathlib import Path
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import PartitionSpec as P
+    import dbdjax as dbd
+
+    assert len(jax.devices()) == 2, jax.devices()
+    mesh = jax.make_mesh((2,), ("b",), axis_types=(jax.sharding.AxisType.Auto,))
+    mapped = lambda f: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=P("b"), out_specs=P("b")))  # check_vma on
+    for solver in ("dbd", "impulse"):
+        # Brax's ant: contacts (sweeps and restitution), armature (the rotor pass), actuators, two
+        # substeps (the pipeline's scan); each copy with its own controls
+        model = dbd.load_mjcf(Path("tests/assets/ant.xml"), substeps=2, iterations=2, solver=solver)
+        low, high = np.asarray(model.control_range).T
+        controls = jnp.asarray(low + np.random.default_rng(0).uniform(size=(4, model.num_controls)) * (high - low),
+                               jnp.float32)
+        states = jax.tree.map(lambda x: jnp.broadcast_to(x, (4,) + x.shape), dbd.init(model))
+        step = jax.vmap(lambda c, s: dbd.step(model, s, c).pos)
+        functions = [step] + [jax.vmap(jax.grad(lambda c, s: jnp.sum(dbd.step(model, s, c).pos[:, 2])))] * (
+            solver == "dbd")
+        differences = [float(np.max(np.abs(np.asarray(mapped(f)(controls, states) - jax.jit(f)(controls, states)))))
+                       for f in functions]
+        print(solver, " ".join(f"{d:.3g}" for d in differences))
+    """
+)
+
 
 TRAINERS = textwrap.dedent(
     """
@@ -95,6 +122,17 @@ def test_batched_rollout_sharded_over_four_cpu_devices_matches_one_device():
     assert float(lines["max_difference"]) < 1e-5
     assert lines["finite"] == "True"
     assert lines["uneven"] == "True"  # a batch of 6 over 4 devices is refused with a clear error
+
+
+@pytest.mark.slow  # 205 s: under shard_map the products take their written-out components (math._unsharded)
+def test_step_and_its_gradient_run_under_shard_map_with_its_type_checks():
+    """`jax.shard_map` (its varying-axes checks on, as by default) over a batch of Brax's ant: the
+    step with both solvers and the DBD step's gradient. The scans' carries that start as
+    constants are made varying (`sharding.varying_like`); the results are those of one device."""
+    lines = run_script(SHARD_MAP, dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
+    step, grad = (float(d) for d in lines["dbd"].split())
+    assert step < 1e-5 and grad < 1e-3, lines["dbd"]
+    assert float(lines["impulse"]) < 1e-5, lines["impulse"]
 
 
 @pytest.mark.slow  # 124 s; the sharded rollouts above stay in CI

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import math
+from dbdjax import math, sharding
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
@@ -143,7 +143,8 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
             increment = point(i, increment)
         return increment, None
 
-    increment, _ = jax.lax.scan(sweep, jnp.zeros_like(lam), None, length=sweeps)
+    start = sharding.varying_like(jnp.zeros_like(lam), lam, error, blocks, slots)  # (shard_map)
+    increment, _ = jax.lax.scan(sweep, start, None, length=sweeps)
     pair = _move(pair, increment, directions, turn_a, turn_b)
     lam = jnp.concatenate([lam + increment, jnp.zeros((points, 1), lam.dtype)], axis=1)
     return *pair.displacements(), lam.reshape(-1)
@@ -189,7 +190,8 @@ def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet,
             increment = increment.at[i].add(jnp.where(pushed[i], step, 0.0))
         return increment, None
 
-    increment, _ = jax.lax.scan(sweep, jnp.zeros(points, error.dtype), None, length=sweeps)
+    start = sharding.varying_like(jnp.zeros(points, error.dtype), error, normal_coupling, ceiling, pushed)
+    increment, _ = jax.lax.scan(sweep, start, None, length=sweeps)
     impulse = jnp.stack([increment, jnp.zeros_like(increment), jnp.zeros_like(increment)], axis=1)
     pair = _move(pair, impulse, directions, turn_a, turn_b)
     return *pair.displacements(), normal_multipliers

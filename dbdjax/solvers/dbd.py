@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import colouring, constraints, integrator, math
+from dbdjax import colouring, constraints, integrator, math, sharding
 from dbdjax.collision import ContactSlots
 from dbdjax.colouring import write_back_slots
 from dbdjax.constraints import Family, joints
@@ -223,7 +223,8 @@ def gauss_seidel(
                     values.append(run_lams[k][r, : len(nodes)])
         return jnp.concatenate(values)[np.argsort(np.concatenate(order))] if order else default
 
-    (dx, dtheta, lams), _ = jax.lax.scan(iteration, (table.dx, table.dtheta, start), None, length=iterations)
+    first = sharding.varying_like((table.dx, table.dtheta, start), table, [family.params for family in families])
+    (dx, dtheta, lams), _ = jax.lax.scan(iteration, first, None, length=iterations)
     return dx, dtheta, [node_order(lams, f, multipliers[f]) for f in range(len(families))]
 
 
@@ -254,7 +255,8 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
         return (dx, dtheta, lams), None
 
     start = [multipliers[f] for f in used]
-    (dx, dtheta, lams), _ = jax.lax.scan(iteration, (table.dx, table.dtheta, start), None, length=iterations)
+    first = sharding.varying_like((table.dx, table.dtheta, start), table, [families[f].params for f in used])
+    (dx, dtheta, lams), _ = jax.lax.scan(iteration, first, None, length=iterations)
     result = list(multipliers)
     for f, lam in zip(used, lams, strict=True):
         result[f] = lam

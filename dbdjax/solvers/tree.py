@@ -68,7 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import math
+from dbdjax import math, sharding
 from dbdjax.constraints import joints as joint_family
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
@@ -540,7 +540,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         carry = carry.at[index[:, 1]].add(math.matmul(math.matmul(_transpose(jp), s_inv), jp))
         return carry, jnp.concatenate([padded(d_inv), padded(s_inv)], axis=-1)  # (W, max(6, R), 6 + R)
 
-    _, inverses = jax.lax.scan(eliminate, blocks, (indices, matrices))
+    _, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), (indices, matrices))
     return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
 
 
@@ -571,7 +571,8 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
         z = z.at[index[:, 1]].add(_mv(math.matmul(_transpose(jp), s_inv), z_joint))
         return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
-    _, right = jax.lax.scan(eliminate, start, (factors.indices, factors.matrices, factors.inverses, gap))
+    levels = (factors.indices, factors.matrices, factors.inverses, gap)
+    _, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[1:]), levels)
 
     def substitute(x, level):
         index, packed, inverse, z = level
@@ -581,9 +582,8 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
         x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _mv(_transpose(jc), kappa)))
         return x, kappa
 
-    return jax.lax.scan(
-        substitute, jnp.zeros_like(start), (factors.indices, factors.matrices, factors.inverses, right), reverse=True
-    )
+    levels = (factors.indices, factors.matrices, factors.inverses, right)
+    return jax.lax.scan(substitute, sharding.varying_like(jnp.zeros_like(start), levels[1:]), levels, reverse=True)
 
 
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
