@@ -57,12 +57,13 @@ SHARD_MAP = textwrap.dedent(
         controls = jnp.asarray(low + np.random.default_rng(0).uniform(size=(4, model.num_controls)) * (high - low),
                                jnp.float32)
         states = jax.tree.map(lambda x: jnp.broadcast_to(x, (4,) + x.shape), dbd.init(model))
-        step = jax.vmap(lambda c, s: dbd.step(model, s, c).pos)
-        functions = [step] + [jax.vmap(jax.grad(lambda c, s: jnp.sum(dbd.step(model, s, c).pos[:, 2])))] * (
-            solver == "dbd")
-        differences = [float(np.max(np.abs(np.asarray(mapped(f)(controls, states) - jax.jit(f)(controls, states)))))
-                       for f in functions]
-        print(solver, " ".join(f"{d:.3g}" for d in differences))
+        functions = {"step": jax.vmap(lambda c, s: dbd.step(model, s, c).pos)}
+        if solver == "dbd":
+            functions["grad"] = jax.vmap(jax.grad(lambda c, s: jnp.sum(dbd.step(model, s, c).pos[:, 2])))
+        for name, function in functions.items():
+            one_device = np.asarray(jax.jit(function)(controls, states))
+            difference = np.max(np.abs(np.asarray(mapped(function)(controls, states)) - one_device))
+            print(f"{solver}_{name}", f"{difference / np.max(np.abs(one_device)):.3g}")  # relative
     """
 )
 
@@ -130,9 +131,10 @@ def test_step_and_its_gradient_run_under_shard_map_with_its_type_checks():
     step with both solvers and the DBD step's gradient. The scans' carries that start as
     constants are made varying (`sharding.varying_like`); the results are those of one device."""
     lines = run_script(SHARD_MAP, dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
-    step, grad = (float(d) for d in lines["dbd"].split())
-    assert step < 1e-5 and grad < 1e-3, lines["dbd"]
-    assert float(lines["impulse"]) < 1e-5, lines["impulse"]
+    # float32 rounding, relative to the largest value: the steps within 1e-5 (measured 7.9e-8), the
+    # gradient, whose reverse pass sums more terms, within 1e-4 (measured 2.3e-5 of its ~2e-5 entries)
+    for name, bound in (("dbd_step", 1e-5), ("impulse_step", 1e-5), ("dbd_grad", 1e-4)):
+        assert float(lines[name]) < bound, (name, lines[name])
 
 
 @pytest.mark.slow  # 124 s; the sharded rollouts above stay in CI
