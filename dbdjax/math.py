@@ -53,6 +53,13 @@ def matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     return total
 
 
+def _components(x: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
+    """The components x[..., k] of a vector or quaternion, each (...,). The products compute on
+    these and stack once at the end: an operation on the whole (..., 3) or (..., 4) array between
+    two products keeps XLA from fusing them into arithmetic on whole components (module docstring)."""
+    return tuple(x[..., k] for k in range(x.shape[-1]))
+
+
 def _unsharded(x: jnp.ndarray) -> bool:
     """True where the type of x names no mesh: no explicitly sharded axes, no `shard_map` manual axes.
     The primitives' shape rule gives types without those, so for such arguments the written-out
@@ -214,7 +221,7 @@ def safe_normalize(v: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     is_zero = squared <= _TINY_SQUARED
     safe_squared = jnp.where(is_zero, 1.0, squared)
     norm = jnp.sqrt(safe_squared)
-    unit = jnp.where(is_zero[..., None], 0.0, v / norm[..., None])
+    unit = jnp.stack([jnp.where(is_zero, 0.0, c / norm) for c in _components(v)], axis=-1)
     return unit, jnp.where(is_zero, 0.0, norm)
 
 
@@ -282,7 +289,8 @@ def quat_multiply(p: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
 
 def quat_conjugate(q: jnp.ndarray) -> jnp.ndarray:
     """Conjugate, the inverse of a unit quaternion."""
-    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+    w, x, y, z = _components(q)
+    return jnp.stack([w, -x, -y, -z], axis=-1)
 
 
 def _normalisation_tangent(q):
@@ -299,11 +307,11 @@ def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
     """Unit quaternion; a zero quaternion becomes the identity."""
     # Summed component by component, not by a reduction: a reduce ends an XLA fusion on CPU, and
     # the solver renormalises two quaternions in every row it projects.
-    squared = (q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1] + q[..., 2] * q[..., 2] + q[..., 3] * q[..., 3])[..., None]
+    w, x, y, z = _components(q)
+    squared = w * w + x * x + y * y + z * z
     is_zero = squared <= _TINY_SQUARED
-    safe = jnp.where(is_zero, 1.0, squared)
-    identity = quat_identity(q.shape[:-1]).astype(q.dtype)
-    return jnp.where(is_zero, identity, q / jnp.sqrt(safe))
+    norm = jnp.sqrt(jnp.where(is_zero, 1.0, squared))
+    return jnp.stack([jnp.where(is_zero, 1.0, w / norm)] + [jnp.where(is_zero, 0.0, c / norm) for c in (x, y, z)], axis=-1)
 
 
 def _rotation_tangents(q, v):
@@ -332,10 +340,12 @@ def _rotation_items(q_item, v_item):
 @_written_out_primitive("dbdjax_quat_rotate", (1, 1), _rotation_items, _rotation_tangents)
 def quat_rotate(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
     """Rotate vector v (..., 3) by unit quaternion q (..., 4): v' = q v q*."""
-    w = q[..., :1]
-    u = q[..., 1:]
-    t = 2.0 * cross(u, v)
-    return v + w * t + cross(u, t)
+    w, ux, uy, uz = _components(q)
+    vx, vy, vz = _components(v)
+    tx, ty, tz = 2.0 * (uy * vz - uz * vy), 2.0 * (uz * vx - ux * vz), 2.0 * (ux * vy - uy * vx)  # t = 2 u x v
+    return jnp.stack(
+        [vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz), vz + w * tz + (ux * ty - uy * tx)], axis=-1
+    )
 
 
 def quat_rotate_inverse(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
@@ -361,7 +371,7 @@ def quat_exp(rotation_vector: jnp.ndarray) -> jnp.ndarray:
     angle = jnp.sqrt(safe_squared)
     half_sinc = jnp.where(small, 0.5 - angle_squared / 48.0, jnp.sin(0.5 * angle) / angle)
     half_cos = jnp.where(small, 1.0 - angle_squared / 8.0, jnp.cos(0.5 * angle))
-    return jnp.concatenate([half_cos[..., None], half_sinc[..., None] * rotation_vector], axis=-1)
+    return jnp.stack([half_cos] + [half_sinc * c for c in _components(rotation_vector)], axis=-1)
 
 
 def shortest_rotation(rotation_vector: jnp.ndarray) -> jnp.ndarray:
@@ -375,20 +385,20 @@ def shortest_rotation(rotation_vector: jnp.ndarray) -> jnp.ndarray:
     angle = jnp.sqrt(jnp.where(wraps, angle_squared, 1.0))
     turns = jnp.round(angle / (2.0 * jnp.pi))
     scale = jnp.where(wraps, 1.0 - 2.0 * jnp.pi * turns / angle, 1.0)
-    return scale[..., None] * rotation_vector
+    return jnp.stack([scale * c for c in _components(rotation_vector)], axis=-1)
 
 
 def quat_log(q: jnp.ndarray) -> jnp.ndarray:
     """Rotation vector theta * n of unit quaternion q, with theta in [0, pi] (shortest arc)."""
-    q = jnp.where(q[..., :1] < 0.0, -q, q)  # q and -q are the same rotation
-    vector = q[..., 1:]
-    sin_half_squared = dot(vector, vector)
+    w, x, y, z = _components(q)
+    sign = jnp.where(w < 0.0, -1.0, 1.0)  # q and -q are the same rotation
+    sin_half_squared = x * x + y * y + z * z
     small = sin_half_squared < 1e-8
     sin_half = jnp.sqrt(jnp.where(small, 1.0, sin_half_squared))
-    half_angle = jnp.arctan2(sin_half, q[..., 0])
+    half_angle = jnp.arctan2(sin_half, sign * w)
     # angle / sin(angle/2) -> 2 (1 + s^2/6) as s = sin(angle/2) -> 0 with cos(angle/2) ~ 1
-    scale = jnp.where(small, 2.0 + sin_half_squared / 3.0, 2.0 * half_angle / sin_half)
-    return scale[..., None] * vector
+    scale = sign * jnp.where(small, 2.0 + sin_half_squared / 3.0, 2.0 * half_angle / sin_half)
+    return jnp.stack([scale * x, scale * y, scale * z], axis=-1)
 
 
 def quat_twist_angle(q: jnp.ndarray, axis: jnp.ndarray) -> jnp.ndarray:
@@ -397,9 +407,8 @@ def quat_twist_angle(q: jnp.ndarray, axis: jnp.ndarray) -> jnp.ndarray:
     The twist is the part of q that rotates about `axis`; this is the hinge angle of SI
     (104)-(106), extended to rotations whose axis is not exactly `axis`.
     """
-    q = jnp.where(q[..., :1] < 0.0, -q, q)
-    along = dot(q[..., 1:], axis)
-    return 2.0 * safe_atan2(along, q[..., 0])
+    sign = jnp.where(q[..., 0] < 0.0, -1.0, 1.0)  # q and -q are the same rotation
+    return 2.0 * safe_atan2(sign * dot(q[..., 1:], axis), sign * q[..., 0])
 
 
 def angle_between(a: jnp.ndarray, b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -425,11 +434,8 @@ def _matvec_tangents(matrix, vector):
 @_written_out_primitive("dbdjax_matvec", (2, 1), _matvec_items, _matvec_tangents)
 def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
     """matrix (..., 3, 3) times vector (..., 3), written out (no reduction op) so it fuses."""
-    return (
-        matrix[..., :, 0] * vector[..., None, 0]
-        + matrix[..., :, 1] * vector[..., None, 1]
-        + matrix[..., :, 2] * vector[..., None, 2]
-    )
+    x, y, z = _components(vector)
+    return jnp.stack([matrix[..., i, 0] * x + matrix[..., i, 1] * y + matrix[..., i, 2] * z for i in range(3)], axis=-1)
 
 
 def inverse3(matrix: jnp.ndarray) -> jnp.ndarray:
