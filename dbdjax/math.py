@@ -438,14 +438,40 @@ def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
     return jnp.stack([matrix[..., i, 0] * x + matrix[..., i, 1] * y + matrix[..., i, 2] * z for i in range(3)], axis=-1)
 
 
-def inverse3(matrix: jnp.ndarray) -> jnp.ndarray:
+def _entries(matrix: jnp.ndarray) -> tuple[tuple[jnp.ndarray, ...], ...]:
+    """The entries matrix[..., i, j] of a (..., 3, 3) matrix as rows of components (`_components`)."""
+    return tuple(_components(matrix[..., i, :]) for i in range(3))
+
+
+def _from_entries(rows) -> jnp.ndarray:
+    """The (..., 3, 3) matrix of rows of components, stacked once."""
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def determinant3(matrix: jnp.ndarray) -> jnp.ndarray:
+    """Determinant of (..., 3, 3) matrices, (...): row 0 . (row 1 x row 2)."""
+    (a, b, c), (d, e, f), (g, h, i) = _entries(matrix)
+    return a * (e * i - f * h) + b * (f * g - d * i) + c * (d * h - e * g)
+
+
+def inverse3(matrix: jnp.ndarray, invertible: jnp.ndarray | None = None) -> jnp.ndarray:
     """Inverse of (..., 3, 3) matrices by the adjugate: elementwise, so it fuses and batches
-    (a batched LAPACK call per body costs far more on CPU than the 3x3 arithmetic)."""
-    c0 = cross(matrix[..., 1, :], matrix[..., 2, :])
-    c1 = cross(matrix[..., 2, :], matrix[..., 0, :])
-    c2 = cross(matrix[..., 0, :], matrix[..., 1, :])
-    determinant = dot(matrix[..., 0, :], c0)
-    return jnp.stack([c0, c1, c2], axis=-1) / determinant[..., None, None]
+    (a batched LAPACK call per body costs far more on CPU than the 3x3 arithmetic).
+
+    invertible: (...) bool, or None for all. Where False the result is 0, with a finite gradient
+    (the determinant there is replaced by 1 before dividing)."""
+    (a, b, c), (d, e, f), (g, h, i) = _entries(matrix)
+    # Columns of the adjugate: row 1 x row 2, row 2 x row 0, row 0 x row 1.
+    columns = (
+        (e * i - f * h, f * g - d * i, d * h - e * g),
+        (h * c - i * b, i * a - g * c, g * b - h * a),
+        (b * f - c * e, c * d - a * f, a * e - b * d),
+    )
+    determinant = a * columns[0][0] + b * columns[0][1] + c * columns[0][2]
+    if invertible is None:
+        return _from_entries([[columns[j][k] / determinant for j in range(3)] for k in range(3)])
+    safe = jnp.where(invertible, determinant, 1.0)
+    return _from_entries([[jnp.where(invertible, columns[j][k] / safe, 0.0) for j in range(3)] for k in range(3)])
 
 
 def euler_angles(
