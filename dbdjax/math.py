@@ -311,7 +311,9 @@ def quat_normalize(q: jnp.ndarray) -> jnp.ndarray:
     squared = w * w + x * x + y * y + z * z
     is_zero = squared <= _TINY_SQUARED
     norm = jnp.sqrt(jnp.where(is_zero, 1.0, squared))
-    return jnp.stack([jnp.where(is_zero, 1.0, w / norm)] + [jnp.where(is_zero, 0.0, c / norm) for c in (x, y, z)], axis=-1)
+    return jnp.stack(
+        [jnp.where(is_zero, 1.0, w / norm)] + [jnp.where(is_zero, 0.0, c / norm) for c in (x, y, z)], axis=-1
+    )
 
 
 def _rotation_tangents(q, v):
@@ -344,7 +346,8 @@ def quat_rotate(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
     vx, vy, vz = _components(v)
     tx, ty, tz = 2.0 * (uy * vz - uz * vy), 2.0 * (uz * vx - ux * vz), 2.0 * (ux * vy - uy * vx)  # t = 2 u x v
     return jnp.stack(
-        [vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz), vz + w * tz + (ux * ty - uy * tx)], axis=-1
+        [vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz), vz + w * tz + (ux * ty - uy * tx)],
+        axis=-1,
     )
 
 
