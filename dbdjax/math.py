@@ -60,6 +60,14 @@ def _components(x: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
     return tuple(x[..., k] for k in range(x.shape[-1]))
 
 
+def sum_small(x: jnp.ndarray, axis: int = -1) -> jnp.ndarray:
+    """x summed over a short `axis` (a few entries) as additions of its slices: no reduce op, which
+    XLA:CPU runs as a kernel of its own (for a batch, a library call that cost 50 ns an element on
+    the humanoid's impulse solve), while additions fuse with the arithmetic around them."""
+    parts = [jax.lax.index_in_dim(x, k, axis, keepdims=False) for k in range(x.shape[axis])]
+    return functools.reduce(jnp.add, parts[1:], parts[0])
+
+
 def _unsharded(x: jnp.ndarray) -> bool:
     """True where the type of x names no mesh: no explicitly sharded axes, no `shard_map` manual axes.
     The primitives' shape rule gives types without those, so for such arguments the written-out

@@ -71,25 +71,30 @@ def _manifold(pair: BodyPair, normal: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jn
     directions = row_directions(normal)
     torque_a = math.cross(arm_a[:, None, :], directions)
     torque_b = math.cross(arm_b[:, None, :], directions)
-    turn_a = jnp.einsum("ij,pkj->pki", pair.inv_inertia_a, torque_a)
-    turn_b = jnp.einsum("ij,pkj->pki", pair.inv_inertia_b, torque_b)
+    turn_a = math.matvec(pair.inv_inertia_a, torque_a)
+    turn_b = math.matvec(pair.inv_inertia_b, torque_b)
     rows = directions.shape[0] * 3
+
+    def products(first, second):  # (P, 3, P, 3): every row of first with every row of second
+        return math.dot(first[:, :, None, None, :], second[None, None, :, :, :])
+
     coupling = (
-        (pair.inv_mass_a + pair.inv_mass_b) * jnp.einsum("pki,qli->pkql", directions, directions)
-        + jnp.einsum("pki,qli->pkql", torque_a, turn_a)
-        + jnp.einsum("pki,qli->pkql", torque_b, turn_b)
+        (pair.inv_mass_a + pair.inv_mass_b) * products(directions, directions)
+        + products(torque_a, turn_a)
+        + products(torque_b, turn_b)
     ).reshape(rows, rows)
     return directions, turn_a, turn_b, coupling
 
 
 def _move(pair: BodyPair, impulse: jnp.ndarray, directions, turn_a, turn_b) -> BodyPair:
     """Apply multiplier increments (P, 3) along the rows: b along d, a against it."""
-    push = jnp.einsum("pk,pki->i", impulse, directions)
+
+    def total(rows):  # (3,): the rows (P, 3, 3) times their increments, summed
+        return math.sum_small((impulse[..., None] * rows).reshape(-1, 3), axis=0)
+
+    push = total(directions)
     return pair.moved_by(
-        dx_a=-pair.inv_mass_a * push,
-        dx_b=pair.inv_mass_b * push,
-        dtheta_a=-jnp.einsum("pk,pki->i", impulse, turn_a),
-        dtheta_b=jnp.einsum("pk,pki->i", impulse, turn_b),
+        dx_a=-pair.inv_mass_a * push, dx_b=pair.inv_mass_b * push, dtheta_a=-total(turn_a), dtheta_b=total(turn_b)
     )
 
 
@@ -115,15 +120,15 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
     directions, turn_a, turn_b, coupling = _manifold(pair, slots.normal, arm_a, arm_b)
     # errors of the rows: the gap (p_b - p_a) . n (84), less the depth the point may keep this
     # substep (`ContactSlots.allowed_depth`), and the slip in the plane (89)
-    error = jnp.einsum("pki,pi->pk", directions, -delta - slots.offset)
-    error = error.at[:, 0].set(-jnp.einsum("pi,pi->p", delta, slots.normal) + slots.allowed_depth)
+    error = math.dot(directions, (-delta - slots.offset)[:, None, :])
+    error = error.at[:, 0].set(-math.dot(delta, slots.normal) + slots.allowed_depth)
     diagonal = jnp.diagonal(coupling).reshape(points, 3)
     blocks = coupling.reshape(points, 3, points, 3)
     solvable = slots.active & (diagonal[:, 0] > 0.0)
 
     def point(i: int, increment):
         # row errors after the increment: the pair's coupling times every point's increment
-        residual = error[i] + jnp.sum(blocks[i] * increment[None], axis=(-2, -1))
+        residual = error[i] + math.sum_small((blocks[i] * increment[None]).reshape(3, -1))
         total = lam[i] + increment[i]
         normal = jnp.maximum(total[0] - (residual[0] + compliance_h2 * total[0]) / jnp.where(
             solvable[i], diagonal[i, 0] + compliance_h2, 1.0), 0.0)  # fmt: skip
@@ -176,7 +181,7 @@ def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet,
     speed = row.relative_point_motion(pair, arm_a, arm_b, 1.0)  # (P, 3) b's points against a's
     bounce = jnp.where(slots.approach < -slow, slots.restitution, 0.0)
     target = jnp.maximum(-bounce * slots.approach, 0.0)
-    error = jnp.einsum("pi,pi->p", speed, slots.normal) - target
+    error = math.dot(speed, slots.normal) - target
     normal_coupling = coupling.reshape(points, 3, points, 3)[:, 0, :, 0]
     pushed = slots.active & (normal_multipliers > 0.0) & (jnp.diagonal(normal_coupling) > 0.0)
 

@@ -165,7 +165,7 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
 def _row_products(rows_1, rows_2):
     """(..., K, K) dot products of every row of rows_1 (..., K, 3) with every row of rows_2, written
     elementwise: a batched matrix product compiles to far more code on CPU than these sums."""
-    return jnp.sum(rows_1[..., :, None, :] * rows_2[..., None, :, :], axis=-1)
+    return math.dot(rows_1[..., :, None, :], rows_2[..., None, :, :])
 
 
 def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):
@@ -177,12 +177,12 @@ def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):
 
 def _push(pair: BodyPair, linear, turn_a, turn_b, impulse) -> BodyPair:
     """Apply impulses (K,) along rows (K, 3): M^-1 J^T lambda, +b and -a (SI (23))."""
-    push = jnp.sum(impulse[:, None] * linear, axis=0)
+    push = math.sum_small(impulse[:, None] * linear, axis=0)
     return pair.moved_by(
         dx_a=-pair.inv_mass_a * push,
         dx_b=pair.inv_mass_b * push,
-        dtheta_a=-jnp.sum(impulse[:, None] * turn_a, axis=0),
-        dtheta_b=jnp.sum(impulse[:, None] * turn_b, axis=0),
+        dtheta_a=-math.sum_small(impulse[:, None] * turn_a, axis=0),
+        dtheta_b=math.sum_small(impulse[:, None] * turn_b, axis=0),
     )
 
 
@@ -239,7 +239,7 @@ def point_hold(pair: BodyPair, point: Block, linear, angular_a, angular_b):
         + _row_products(turn_a, point.angular_a)
         + _row_products(turn_b, point.angular_b)
     )  # (R, 3): s of each row
-    hold = -jnp.sum(coupling[:, None, :] * point.mass[None], axis=-1)  # -K_point^-1 s (mass is symmetric)
+    hold = -math.matvec(point.mass, coupling)  # -K_point^-1 s
     return hold, -_row_products(coupling, hold)
 
 
@@ -514,7 +514,7 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     point = joint_rows.point
 
     def held(pair, point_impulse, step, hold):  # the point impulse that comes with a held row's step
-        push = jnp.sum(step[:, None] * hold, axis=0)
+        push = math.sum_small(step[:, None] * hold, axis=0)
         return _push(pair, point.linear, point.turn_a, point.turn_b, push), point_impulse + push
 
     point_impulse = impulses[POINT]
@@ -656,7 +656,7 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
 
     stored = jnp.where(active[:, None], impulses.reshape(points, CONTACT_IMPULSES_PER_POINT), 0.0)
     lam_n = jnp.maximum(stored[:, 0], 0.0)
-    lam_t = jax.vmap(_clamp_disc)(jnp.sum(tangents * stored[:, None, 1:], axis=-1), friction * lam_n)
+    lam_t = jax.vmap(_clamp_disc)(math.sum_small(tangents * stored[:, None, 1:], axis=-1), friction * lam_n)
     lam = jnp.concatenate([lam_n[:, None], lam_t], axis=1)
     dv, dw = _warm(pair, [(Rows(directions, angular_a, angular_b, turn_a, turn_b, *(None,) * 5), lam.reshape(-1))])
     return rows, lam.reshape(-1), dv, dw
@@ -665,7 +665,7 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
 def store_contacts(rows: ContactRows, impulses: jnp.ndarray) -> jnp.ndarray:
     """(3 P,) impulses along (n, t1, t2) -> (4 P,) lambda_n and the world friction impulse."""
     lam = impulses.reshape(-1, 3)
-    friction = jnp.sum(lam[:, 1:, None] * rows.directions[:, 1:], axis=1)
+    friction = math.sum_small(lam[:, 1:, None] * rows.directions[:, 1:], axis=1)
     return jnp.concatenate([lam[:, :1], friction], axis=1).reshape(-1)
 
 
