@@ -60,12 +60,20 @@ def _components(x: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
     return tuple(x[..., k] for k in range(x.shape[-1]))
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def sum_small(x: jnp.ndarray, axis: int = -1) -> jnp.ndarray:
     """x summed over a short `axis` (a few entries) as additions of its slices: no reduce op, which
     XLA:CPU runs as a kernel of its own (for a batch, a library call that cost 50 ns an element on
-    the humanoid's impulse solve), while additions fuse with the arithmetic around them."""
+    the humanoid's impulse solve), while additions fuse with the arithmetic around them. Its
+    derivative is the sum itself, which reverse mode transposes into one broadcast (the slices'
+    transposes would be a padding kernel each, as the module docstring says of the products)."""
     parts = [jax.lax.index_in_dim(x, k, axis, keepdims=False) for k in range(x.shape[axis])]
     return functools.reduce(jnp.add, parts[1:], parts[0])
+
+
+@sum_small.defjvp
+def _sum_small_jvp(axis, primals, tangents):
+    return sum_small(primals[0], axis), jnp.sum(tangents[0], axis=axis)
 
 
 def _unsharded(x: jnp.ndarray) -> bool:
