@@ -7,8 +7,12 @@ that the gradient is finite wherever the value is (JAX FAQ, "gradients contain N
 where"). The value at the singular point is the limit, not a scrubbed NaN.
 
 The products (dot, cross, matvec, quaternion product and rotation, normalisation) are written out
-component by component, which XLA fuses into the kernels around them. Each is a JAX primitive of
-its own (`_written_out_primitive`), for two reasons:
+component by component, which XLA fuses into the kernels around them: each takes its arguments'
+components, computes on those and stacks its result once (`_components`). An operation on a whole
+(..., 3) or (..., 4) array inside one (`q / |q|`, `w * t` with w broadcast along the components)
+kept XLA:CPU from fusing a chain of them into arithmetic on whole components: Brax's humanoid
+stepped 1.2x slower at batch 256 (README, "Session 42"). Each is a JAX primitive of its own
+(`_written_out_primitive`), for two reasons:
 - Its derivative is a matrix (the derivative at the primals) times the tangent, summed over the
   last axis (`_times`), which reverse mode transposes into products again. Left to JAX, every
   component slice `v[..., k]` would become, in reverse mode, a kernel of its own that pads the
@@ -54,9 +58,8 @@ def matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
 
 
 def _components(x: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
-    """The components x[..., k] of a vector or quaternion, each (...,). The products compute on
-    these and stack once at the end: an operation on the whole (..., 3) or (..., 4) array between
-    two products keeps XLA from fusing them into arithmetic on whole components (module docstring)."""
+    """The components x[..., k] of a vector or quaternion, each (...,): what the products' written-out
+    forms compute on (module docstring)."""
     return tuple(x[..., k] for k in range(x.shape[-1]))
 
 
@@ -237,7 +240,7 @@ def safe_normalize(v: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     is_zero = squared <= _TINY_SQUARED
     safe_squared = jnp.where(is_zero, 1.0, squared)
     norm = jnp.sqrt(safe_squared)
-    unit = jnp.stack([jnp.where(is_zero, 0.0, c / norm) for c in _components(v)], axis=-1)
+    unit = jnp.where(is_zero[..., None], 0.0, v / norm[..., None])
     return unit, jnp.where(is_zero, 0.0, norm)
 
 
@@ -305,8 +308,7 @@ def quat_multiply(p: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
 
 def quat_conjugate(q: jnp.ndarray) -> jnp.ndarray:
     """Conjugate, the inverse of a unit quaternion."""
-    w, x, y, z = _components(q)
-    return jnp.stack([w, -x, -y, -z], axis=-1)
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
 def _normalisation_tangent(q):
@@ -390,7 +392,7 @@ def quat_exp(rotation_vector: jnp.ndarray) -> jnp.ndarray:
     angle = jnp.sqrt(safe_squared)
     half_sinc = jnp.where(small, 0.5 - angle_squared / 48.0, jnp.sin(0.5 * angle) / angle)
     half_cos = jnp.where(small, 1.0 - angle_squared / 8.0, jnp.cos(0.5 * angle))
-    return jnp.stack([half_cos] + [half_sinc * c for c in _components(rotation_vector)], axis=-1)
+    return jnp.concatenate([half_cos[..., None], half_sinc[..., None] * rotation_vector], axis=-1)
 
 
 def shortest_rotation(rotation_vector: jnp.ndarray) -> jnp.ndarray:
@@ -404,20 +406,20 @@ def shortest_rotation(rotation_vector: jnp.ndarray) -> jnp.ndarray:
     angle = jnp.sqrt(jnp.where(wraps, angle_squared, 1.0))
     turns = jnp.round(angle / (2.0 * jnp.pi))
     scale = jnp.where(wraps, 1.0 - 2.0 * jnp.pi * turns / angle, 1.0)
-    return jnp.stack([scale * c for c in _components(rotation_vector)], axis=-1)
+    return scale[..., None] * rotation_vector
 
 
 def quat_log(q: jnp.ndarray) -> jnp.ndarray:
     """Rotation vector theta * n of unit quaternion q, with theta in [0, pi] (shortest arc)."""
-    w, x, y, z = _components(q)
-    sign = jnp.where(w < 0.0, -1.0, 1.0)  # q and -q are the same rotation
-    sin_half_squared = x * x + y * y + z * z
+    q = jnp.where(q[..., :1] < 0.0, -q, q)  # q and -q are the same rotation
+    vector = q[..., 1:]
+    sin_half_squared = dot(vector, vector)
     small = sin_half_squared < 1e-8
     sin_half = jnp.sqrt(jnp.where(small, 1.0, sin_half_squared))
-    half_angle = jnp.arctan2(sin_half, sign * w)
+    half_angle = jnp.arctan2(sin_half, q[..., 0])
     # angle / sin(angle/2) -> 2 (1 + s^2/6) as s = sin(angle/2) -> 0 with cos(angle/2) ~ 1
-    scale = sign * jnp.where(small, 2.0 + sin_half_squared / 3.0, 2.0 * half_angle / sin_half)
-    return jnp.stack([scale * x, scale * y, scale * z], axis=-1)
+    scale = jnp.where(small, 2.0 + sin_half_squared / 3.0, 2.0 * half_angle / sin_half)
+    return scale[..., None] * vector
 
 
 def quat_twist_angle(q: jnp.ndarray, axis: jnp.ndarray) -> jnp.ndarray:
@@ -426,8 +428,9 @@ def quat_twist_angle(q: jnp.ndarray, axis: jnp.ndarray) -> jnp.ndarray:
     The twist is the part of q that rotates about `axis`; this is the hinge angle of SI
     (104)-(106), extended to rotations whose axis is not exactly `axis`.
     """
-    sign = jnp.where(q[..., 0] < 0.0, -1.0, 1.0)  # q and -q are the same rotation
-    return 2.0 * safe_atan2(sign * dot(q[..., 1:], axis), sign * q[..., 0])
+    q = jnp.where(q[..., :1] < 0.0, -q, q)
+    along = dot(q[..., 1:], axis)
+    return 2.0 * safe_atan2(along, q[..., 0])
 
 
 def angle_between(a: jnp.ndarray, b: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -457,40 +460,14 @@ def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
     return jnp.stack([matrix[..., i, 0] * x + matrix[..., i, 1] * y + matrix[..., i, 2] * z for i in range(3)], axis=-1)
 
 
-def _entries(matrix: jnp.ndarray) -> tuple[tuple[jnp.ndarray, ...], ...]:
-    """The entries matrix[..., i, j] of a (..., 3, 3) matrix as rows of components (`_components`)."""
-    return tuple(_components(matrix[..., i, :]) for i in range(3))
-
-
-def _from_entries(rows) -> jnp.ndarray:
-    """The (..., 3, 3) matrix of rows of components, stacked once."""
-    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
-
-
-def determinant3(matrix: jnp.ndarray) -> jnp.ndarray:
-    """Determinant of (..., 3, 3) matrices, (...): row 0 . (row 1 x row 2)."""
-    (a, b, c), (d, e, f), (g, h, i) = _entries(matrix)
-    return a * (e * i - f * h) + b * (f * g - d * i) + c * (d * h - e * g)
-
-
-def inverse3(matrix: jnp.ndarray, invertible: jnp.ndarray | None = None) -> jnp.ndarray:
+def inverse3(matrix: jnp.ndarray) -> jnp.ndarray:
     """Inverse of (..., 3, 3) matrices by the adjugate: elementwise, so it fuses and batches
-    (a batched LAPACK call per body costs far more on CPU than the 3x3 arithmetic).
-
-    invertible: (...) bool, or None for all. Where False the result is 0, with a finite gradient
-    (the determinant there is replaced by 1 before dividing)."""
-    (a, b, c), (d, e, f), (g, h, i) = _entries(matrix)
-    # Columns of the adjugate: row 1 x row 2, row 2 x row 0, row 0 x row 1.
-    columns = (
-        (e * i - f * h, f * g - d * i, d * h - e * g),
-        (h * c - i * b, i * a - g * c, g * b - h * a),
-        (b * f - c * e, c * d - a * f, a * e - b * d),
-    )
-    determinant = a * columns[0][0] + b * columns[0][1] + c * columns[0][2]
-    if invertible is None:
-        return _from_entries([[columns[j][k] / determinant for j in range(3)] for k in range(3)])
-    safe = jnp.where(invertible, determinant, 1.0)
-    return _from_entries([[jnp.where(invertible, columns[j][k] / safe, 0.0) for j in range(3)] for k in range(3)])
+    (a batched LAPACK call per body costs far more on CPU than the 3x3 arithmetic)."""
+    c0 = cross(matrix[..., 1, :], matrix[..., 2, :])
+    c1 = cross(matrix[..., 2, :], matrix[..., 0, :])
+    c2 = cross(matrix[..., 0, :], matrix[..., 1, :])
+    determinant = dot(matrix[..., 0, :], c0)
+    return jnp.stack([c0, c1, c2], axis=-1) / determinant[..., None, None]
 
 
 def euler_angles(

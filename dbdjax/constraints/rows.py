@@ -544,35 +544,32 @@ def angular_block(
     return moved, multiplier + step
 
 
-def _point_response(arm: jnp.ndarray, inv_mass: jnp.ndarray, inv_inertia: jnp.ndarray) -> list[list[jnp.ndarray]]:
-    """How the point at `arm` from a body's centre moves per unit impulse there: the entries [i][j]
-    of 1/m 1 - [arm]x I^-1 [arm]x, one body's term of DBD (57). Column j, the response to e_j, is
-    e_j / m + (I^-1 (arm x e_j)) x arm. Kept as components (math module docstring)."""
-    x, y, z = (arm[..., k] for k in range(3))
-    inertia = [[inv_inertia[..., i, k] for k in range(3)] for i in range(3)]
-    columns = []
-    for j, lever in enumerate(((0.0, z, -y), (-z, 0.0, x), (y, -x, 0.0))):  # arm x e_j
-        tx, ty, tz = (sum(inertia[i][k] * lever[k] for k in range(3) if k != j) for i in range(3))
-        moved = [ty * z - tz * y, tz * x - tx * z, tx * y - ty * x]
-        moved[j] = moved[j] + inv_mass
-        columns.append(moved)
-    return [[columns[j][i] for j in range(3)] for i in range(3)]
+def point_response(arm: jnp.ndarray, inv_mass: jnp.ndarray, inv_inertia: jnp.ndarray) -> jnp.ndarray:
+    """How the point at `arm` from a body's centre moves per unit impulse there, (3, 3):
+    1/m 1 - [arm]x I^-1 [arm]x, one body's term of DBD (57). Written column by column (no matmul):
+    the response to e_j is e_j / m + (I^-1 (arm x e_j)) x arm."""
+    eye = jnp.eye(3, dtype=arm.dtype)
+    turn = math.matvec(inv_inertia[None], math.cross(arm[None], eye))  # row j: I^-1 (arm x e_j)
+    columns = inv_mass * eye + math.cross(turn, arm[None])  # row j: the response to e_j
+    return jnp.swapaxes(columns, -1, -2)
 
 
 def point_inverse_mass(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray) -> jnp.ndarray:
     """K (3, 3) m/kg, how the gap p_a - p_b between the points at arm_a on a and arm_b on b opens
     per unit impulse at them: the point block's effective inverse mass, DBD (57), (66)."""
-    on_a = _point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a)
-    on_b = _point_response(arm_b, pair.inv_mass_b, pair.inv_inertia_b)
-    return jnp.stack([jnp.stack([on_a[i][j] + on_b[i][j] for j in range(3)], axis=-1) for i in range(3)], axis=-2)
+    return point_response(arm_a, pair.inv_mass_a, pair.inv_inertia_a) + point_response(
+        arm_b, pair.inv_mass_b, pair.inv_inertia_b
+    )
 
 
 def definite_inverse(matrix: jnp.ndarray, active: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(matrix^-1, invertible) of a (3, 3) effective inverse mass, positive definite unless neither
     side can move: 0 and False there (or where `active` is False), with the singular matrix kept
     out of the inverse so that gradients stay finite."""
-    invertible = active & (math.determinant3(matrix) > 0.0)
-    return math.inverse3(matrix, invertible), invertible
+    determinant = math.dot(matrix[0], math.cross(matrix[1], matrix[2]))
+    invertible = active & (determinant > 0.0)
+    eye = jnp.eye(3, dtype=matrix.dtype)
+    return jnp.where(invertible, math.inverse3(jnp.where(invertible, matrix, eye)), 0.0), invertible
 
 
 def point_impulse_motion(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, impulse: jnp.ndarray):
