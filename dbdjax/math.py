@@ -79,6 +79,13 @@ def _sum_small_jvp(axis, primals, tangents):
     return sum_small(primals[0], axis), jnp.sum(tangents[0], axis=axis)
 
 
+def row_products(rows_1: jnp.ndarray, rows_2: jnp.ndarray) -> jnp.ndarray:
+    """(..., K, L) dot products of every row of rows_1 (..., K, 3) with every row of rows_2
+    (..., L, 3): `dot` broadcast, not a batched matrix product, which compiles to far more code on
+    CPU and runs as a library call of its own there."""
+    return dot(rows_1[..., :, None, :], rows_2[..., None, :, :])
+
+
 def _unsharded(x: jnp.ndarray) -> bool:
     """True where the type of x names no mesh: no explicitly sharded axes, no `shard_map` manual axes.
     The primitives' shape rule gives types without those, so for such arguments the written-out

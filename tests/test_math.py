@@ -164,6 +164,25 @@ def test_gradients_of_the_products_slice_no_vector():
     assert "pad" not in text and "pad" in jax.jit(jax.grad(plain, (0, 1))).lower(q, v).as_text()
 
 
+@pytest.mark.parametrize("axis", [0, 1, -1])
+def test_sum_small_is_the_sum_with_no_reduce_and_its_gradient_pads_nothing(axis):
+    """Additions of slices (no reduce op, which XLA:CPU runs as a kernel or library call of its own),
+    whose derivative is the sum: reverse mode pads no slice back."""
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(4, 3, 5)), jnp.float32)
+    np.testing.assert_allclose(math.sum_small(x, axis=axis), jnp.sum(x, axis=axis), rtol=1e-6, atol=1e-6)
+    loss = lambda x: jnp.sum(jnp.sin(math.sum_small(x, axis=axis)))  # noqa: E731
+    np.testing.assert_allclose(jax.grad(loss)(x), jax.grad(lambda x: jnp.sum(jnp.sin(jnp.sum(x, axis=axis))))(x),
+                               rtol=1e-6, atol=1e-6)  # fmt: skip
+    assert "reduce" not in jax.jit(functools.partial(math.sum_small, axis=axis)).lower(x).as_text()
+    assert "pad" not in jax.jit(jax.grad(loss)).lower(x).as_text()
+
+
+def test_row_products_are_the_dot_products_of_every_pair_of_rows():
+    rng = np.random.default_rng(1)
+    a, b = jnp.asarray(rng.normal(size=(2, 4, 3))), jnp.asarray(rng.normal(size=(2, 5, 3)))
+    np.testing.assert_allclose(math.row_products(a, b), jnp.einsum("nki,nli->nkl", a, b), rtol=1e-6, atol=1e-6)
+
+
 def _equations(jaxpr) -> int:
     """Equations of a jaxpr, those of its sub-jaxprs (custom derivatives, loops) included."""
     count = 0

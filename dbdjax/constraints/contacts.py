@@ -73,16 +73,15 @@ def _manifold(pair: BodyPair, normal: jnp.ndarray, arm_a: jnp.ndarray, arm_b: jn
     torque_b = math.cross(arm_b[:, None, :], directions)
     turn_a = math.matvec(pair.inv_inertia_a, torque_a)
     turn_b = math.matvec(pair.inv_inertia_b, torque_b)
-    rows = directions.shape[0] * 3
 
-    def products(first, second):  # (P, 3, P, 3): every row of first with every row of second
-        return math.dot(first[:, :, None, None, :], second[None, None, :, :, :])
+    def rows(x):  # (3 P, 3): every point's three rows in turn
+        return x.reshape(-1, 3)
 
     coupling = (
-        (pair.inv_mass_a + pair.inv_mass_b) * products(directions, directions)
-        + products(torque_a, turn_a)
-        + products(torque_b, turn_b)
-    ).reshape(rows, rows)
+        (pair.inv_mass_a + pair.inv_mass_b) * math.row_products(rows(directions), rows(directions))
+        + math.row_products(rows(torque_a), rows(turn_a))
+        + math.row_products(rows(torque_b), rows(turn_b))
+    )
     return directions, turn_a, turn_b, coupling
 
 

@@ -141,9 +141,9 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
     turn_b = math.matvec(pair.inv_inertia_b, angular_b)
     # K_ij = (1/m_a + 1/m_b) l_i . l_j + g_a,i . I_a^-1 g_a,j + g_b,i . I_b^-1 g_b,j
     coupling = (
-        (pair.inv_mass_a + pair.inv_mass_b) * _row_products(linear, linear)
-        + _row_products(angular_a, turn_a)
-        + _row_products(angular_b, turn_b)
+        (pair.inv_mass_a + pair.inv_mass_b) * math.row_products(linear, linear)
+        + math.row_products(angular_a, turn_a)
+        + math.row_products(angular_b, turn_b)
     )
     if held is not None:
         coupling = coupling - held
@@ -160,12 +160,6 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
         mass = jnp.where(active, softness * mix, 0.0)
         mix = jnp.where(active, mix, 0.0)
     return Block(linear, angular_a, angular_b, turn_a, turn_b, mass, mix, bias, jnp.asarray(bound, coupling.dtype))
-
-
-def _row_products(rows_1, rows_2):
-    """(..., K, K) dot products of every row of rows_1 (..., K, 3) with every row of rows_2, written
-    elementwise: a batched matrix product compiles to far more code on CPU than these sums."""
-    return math.dot(rows_1[..., :, None, :], rows_2[..., None, :, :])
 
 
 def _relative_speed(pair: BodyPair, linear, angular_a, angular_b):
@@ -235,12 +229,12 @@ def point_hold(pair: BodyPair, point: Block, linear, angular_a, angular_b):
     turn_a = math.matvec(pair.inv_inertia_a, angular_a)
     turn_b = math.matvec(pair.inv_inertia_b, angular_b)
     coupling = (
-        (pair.inv_mass_a + pair.inv_mass_b) * _row_products(linear, point.linear)
-        + _row_products(turn_a, point.angular_a)
-        + _row_products(turn_b, point.angular_b)
+        (pair.inv_mass_a + pair.inv_mass_b) * math.row_products(linear, point.linear)
+        + math.row_products(turn_a, point.angular_a)
+        + math.row_products(turn_b, point.angular_b)
     )  # (R, 3): s of each row
     hold = -math.matvec(point.mass, coupling)  # -K_point^-1 s
-    return hold, -_row_products(coupling, hold)
+    return hold, -math.row_products(coupling, hold)
 
 
 # ---------------------------------------------------------------------------------- joints
@@ -635,9 +629,9 @@ def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, im
     inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, 1.0)  # (P, 3), SI (34)-(36)
     tangents = directions[:, 1:]
     tangent_coupling = (
-        (pair.inv_mass_a + pair.inv_mass_b) * _row_products(tangents, tangents)
-        + _row_products(angular_a[:, 1:], turn_a[:, 1:])
-        + _row_products(angular_b[:, 1:], turn_b[:, 1:])
+        (pair.inv_mass_a + pair.inv_mass_b) * math.row_products(tangents, tangents)
+        + math.row_products(angular_a[:, 1:], turn_a[:, 1:])
+        + math.row_products(angular_b[:, 1:], turn_b[:, 1:])
     )
     separation = -math.dot(delta, normal)  # SI (25) at the start pose
     active = slots.active & (inverse_mass[:, 0] > 0.0)
