@@ -10,8 +10,8 @@ the build pose (action 0, every drive holding the standing pose) and the capture
 2. One kick of each speed in each of 8 directions (relative to the heading) at step 30, no other
    pushes, 150 steps: who falls, and when.
 3. Ankle targets (a lean) with no pushes, 150 steps: the COM's forward position and who falls.
-4. The env's own random pushes (every 2 s on average) of several speed ranges, 32 episodes of
-   300 steps: the fraction that survives the whole episode.
+4. The env's own pushes (every 2 s) of several speed ranges, 32 episodes of 300 steps: the
+   fraction that survives the whole episode.
 5. The solver budget: an ankle lean of -0.036 rad ramped in over 1 s, no pushes, 150 steps, at
    several substeps x iterations: where the ankles end and whether the doll stands (at 2 x 8 the
    ankles sag to -0.1 rad and it falls: README, "The solver budget sets the ankles' stiffness").
@@ -26,6 +26,10 @@ the build pose (action 0, every drive holding the standing pose) and the capture
     python benchmarks/ragdoll_push_recovery.py [--out benchmarks/results/ragdoll_push_recovery.json]
     python benchmarks/ragdoll_push_recovery.py --only budgets ramped   # sections 5 and 6 (the file keeps the rest)
     python benchmarks/ragdoll_push_recovery.py --only capture --compare benchmarks/results/ppo_*.json
+
+`--push-schedule` (regular, the env's default since session 43, or random) sets the env's pushes
+of sections 4, 6 and 7; the results kept from before session 43 are of the random schedule (each
+section's rows say which, where recorded).
 """
 
 from __future__ import annotations
@@ -139,10 +143,11 @@ def leans(task: RagdollStand, ankle_targets, steps: int = 150) -> dict:
             "survived": alive[-1].astype(int).tolist()}  # fmt: skip
 
 
-def random_pushes(speed_ranges, episodes: int = 32, steps: int = 300) -> list[dict]:
+def random_pushes(speed_ranges, episodes: int = 32, steps: int = 300, push_schedule: str = "regular") -> list[dict]:
     rows = []
     for low, high in speed_ranges:
-        task = RagdollStand(max_episode_steps=steps, push_speed=(low, high), push_interval=2.0 if high > 0 else None)
+        task = RagdollStand(max_episode_steps=steps, push_speed=(low, high), push_interval=2.0 if high > 0 else None,
+                            push_schedule=push_schedule)  # fmt: skip
 
         @dbd.jit
         def run(keys, task=task):
@@ -159,6 +164,7 @@ def random_pushes(speed_ranges, episodes: int = 32, steps: int = 300) -> list[di
 
         alive, length = (np.asarray(x) for x in run(jax.random.split(jax.random.PRNGKey(1), episodes)))
         rows.append({"push_speed_m_per_s": [low, high], "push_interval_s": 2.0 if high > 0 else None,
+                     "push_schedule": push_schedule,
                      "survival": float(alive.mean()), "mean_steps": float(length.mean())})  # fmt: skip
         print(rows[-1], flush=True)
     return rows
@@ -224,11 +230,11 @@ def episode_kicks(task: RagdollStand, episodes: int, seed: int, steps: int, head
         def one(key):
             state, _, _ = task.reset(key)
 
-            def body(key, _):
+            def body(key, step):
                 key, step_key = jax.random.split(key)
-                return key, task.kick(step_key)
+                return key, task.kick(step_key, step)
 
-            _, kicks = jax.lax.scan(body, state.key, None, length=steps)
+            _, kicks = jax.lax.scan(body, state.key, jnp.arange(steps))
             return yaw_rotate_inverse(task.heading(state.physics) + heading_error, kicks)[:, :2]
 
         return jax.vmap(one)(keys)
@@ -441,6 +447,10 @@ def main() -> None:
     parser.add_argument("--checkpoints", nargs="*", default=[], help="policy checkpoints (.npz) that section 7 "
                         "evaluates on --policy-episodes other episodes beside the bound")  # fmt: skip
     parser.add_argument("--policy-episodes", type=int, default=1024)
+    parser.add_argument("--push-schedule", choices=["regular", "random"], default="regular",
+                        help="the env's push schedule in sections 4, 6 and 7 (default: the env's, regular); "
+                        "section 7 writes `feet_in_place_bound` for random, `feet_in_place_bound_regular` for "
+                        "regular")  # fmt: skip
     args = parser.parse_args()
     if args.checkpoints and "capture" in (args.only or ["capture"]):
         from dbdjax.training import rl  # noqa: PLC0415 (the train extra, only for the checkpoints)
@@ -466,7 +476,7 @@ def main() -> None:
         result["leans"] = leans(task, [-0.1, -0.05, -0.025, 0.0, 0.025, 0.05])
         print(result["leans"], flush=True)
     if "pushes" in sections:
-        result["random_pushes"] = random_pushes([(0.0, 0.0), (0.3, 0.6), (0.5, 1.5)])
+        result["random_pushes"] = random_pushes([(0.0, 0.0), (0.3, 0.6), (0.5, 1.5)], push_schedule=args.push_schedule)
     if "budgets" in sections:
         result["solver_budgets"] = solver_budgets([(2, 8), (4, 4), (3, 8), (4, 6), (2, 16), (4, 8), (8, 4), (2, 32),
                                                    (8, 8)])  # fmt: skip
@@ -474,14 +484,22 @@ def main() -> None:
         result["ramped_leans_under_pushes"] = []
         for substeps in (2, 4):
             row = ramped_lean_episodes(np.array([0.0, -0.01, -0.02, -0.03, -0.045, -0.06, -0.08]), 48, 300,
-                                       substeps=substeps, iterations=8)  # fmt: skip
-            result["ramped_leans_under_pushes"].append(dict(row, substeps=substeps, iterations=8))
+                                       substeps=substeps, iterations=8, push_schedule=args.push_schedule)  # fmt: skip
+            result["ramped_leans_under_pushes"].append(dict(row, substeps=substeps, iterations=8,
+                                                            push_schedule=args.push_schedule))  # fmt: skip
             print(result["ramped_leans_under_pushes"][-1], flush=True)
     if "capture" in sections:
-        result["feet_in_place_bound"] = feet_in_place_bound(RagdollStand(max_episode_steps=300), args.episodes, 1,
-                                                            args.compare, args.checkpoints,
-                                                            policy_episodes=args.policy_episodes)  # fmt: skip
-    run = {"sections": sorted(sections), "wall_s": time.perf_counter() - start, "load_average_at_end": os.getloadavg()}
+        key = "feet_in_place_bound" + ("" if args.push_schedule == "random" else f"_{args.push_schedule}")
+        task = RagdollStand(max_episode_steps=300, push_schedule=args.push_schedule)
+        result[key] = feet_in_place_bound(task, args.episodes, 1, args.compare, args.checkpoints,
+                                          policy_episodes=args.policy_episodes)  # fmt: skip
+        result[key]["push_schedule"] = args.push_schedule
+    run = {
+        "sections": sorted(sections),
+        "push_schedule": args.push_schedule,
+        "wall_s": time.perf_counter() - start,
+        "load_average_at_end": os.getloadavg(),
+    }
     result.setdefault("runs", []).append(run)
     out.write_text(json.dumps(result, indent=1))
     print(f"wrote {out} ({run['wall_s']:.0f} s)")

@@ -43,9 +43,13 @@ pushes on, the home pose with that lean ramped in over 1 s and held stands throu
 episodes of 300 steps at 4 x 8, and 0 of 48 at 2 x 8 (whose best constant lean, -0.01 or -0.02,
 stands 15 of 48). Each step costs twice as much (335 against 666 env steps/s at batch 64, one core).
 
-Pushes: at each step, with probability dt / `push_interval` (one push every `push_interval`
-seconds on average), the torso's velocity changes by a horizontal kick of random direction and a
-magnitude uniform in `push_speed` (m/s). info["push"] is the kick of the step (zeros without one).
+Pushes: the torso's velocity changes by a horizontal kick of random direction and a magnitude
+uniform in `push_speed` (m/s), once every `push_interval` seconds. `push_schedule` says when:
+"regular" (the default): at the start of env steps k x round(push_interval / dt), k = 1, 2, ...
+(steps 60, 120, 180 and 240 of a 300-step episode at the default 2 s), as legged_gym pushes its
+robots (every `push_interval_s`); "random": at each step with probability dt / push_interval (a
+Poisson process: one push every push_interval on average, the only schedule until session 43).
+info["push"] is the kick of the step (zeros without one).
 
 Default push range 0.2-0.6 m/s (it was 0.5-1.5 m/s before): the range a doll that keeps its feet
 in place can survive. By the capture point of the linear inverted pendulum (README, "Can the
@@ -56,12 +60,15 @@ every default push alone can be survived by balancing (leaning, ankle and hip to
 pose alone survives few episodes (9 of 48 full 300-step episodes, where a forward ankle lean of
 0.036 rad, ramped in over 1 s, survives 41 of 48; at the former 2 substeps: 1 of 32, and 10 of
 32 for the best lean, 0.008 rad). Most kicks of the old range need a step, which left the
-learners no strategy within reach (`push_speed=(0.5, 1.5)` gives it back). An episode's pushes
+learners no strategy within reach (`push_speed=(0.5, 1.5)` gives it back). (The build-pose and
+lean counts above are of the random schedule.) Under the random schedule an episode's pushes
 together are another matter: about 5 per 300 steps, some in the first steps (before any lean) and
 some a few steps apart in about the same direction. An ideal balance with the feet in place, run on
 each episode's own pushes (`benchmarks/ragdoll_push_recovery.py`, section 7), loses 4% of the
 episodes as a point mass and 9-10% as the rigid doll, and 2-3% even knowing every push in advance
-(README: "How many episodes can be survived with the feet in place?").
+(README: "How many episodes can be survived with the feet in place?"): no policy that keeps its
+feet in place survives them all. Hence the regular schedule, the default since session 43: every
+push meets a doll that has stood 2 s since the last one (README: "Regular pushes").
 """
 
 from __future__ import annotations
@@ -79,6 +86,7 @@ from dbdjax import math, ragdoll
 from dbdjax.envs.core import DbdFuncEnv, EnvState, joint_coordinates, yaw_rotate_inverse
 from dbdjax.envs.wrappers import DbdEnv, DbdVectorEnv
 
+PUSH_SCHEDULES = ("random", "regular")  # RagdollEnv's push_schedule (module docstring)
 SUBSTEPS = 4  # the envs' substeps per physics step (module docstring: why not ragdoll.SUBSTEPS)
 
 
@@ -99,9 +107,11 @@ class RagdollEnv(DbdFuncEnv):
     """The shared part of the ragdoll tasks (see the module docstring); subclasses set the reward.
 
     height (m), mass (kg), drive_stiffness, drive_damping, max_torque: `ragdoll.build`'s
-    (None: its defaults). push_interval: s between pushes on average (None: no pushes).
-    push_speed: (low, high) m/s (module docstring: why 0.2-0.6). fall_height: m, the pelvis height
-    that ends the episode (None: 0.55 x the standing height). smooth_weight: weight of the action-change penalty.
+    (None: its defaults). push_interval: s between pushes (None: no pushes). push_speed: (low,
+    high) m/s (module docstring: why 0.2-0.6). push_schedule: "regular" (one push every
+    push_interval exactly) or "random" (at that rate on average; module docstring). fall_height:
+    m, the pelvis height that ends the episode (None: 0.55 x the standing height). smooth_weight:
+    weight of the action-change penalty.
     dt, substeps, iterations, tree_solve: the physics (`ModelBuilder.finalize`). tree_solve=True is
     not fit for training yet: at 2 substeps x 2 iterations it survived scripted pushes as the default
     4 x 8 sweeps do (session 27), but under a PPO policy's actions a foot point that starts sliding
@@ -120,6 +130,7 @@ class RagdollEnv(DbdFuncEnv):
         max_torque: float | Mapping[str, float] | None = None,
         push_interval: float | None = None,
         push_speed: tuple[float, float] = (0.2, 0.6),
+        push_schedule: str = "regular",
         fall_height: float | None = None,
         smooth_weight: float = 0.1,
         dt: float = ragdoll.DT,
@@ -133,12 +144,17 @@ class RagdollEnv(DbdFuncEnv):
         base = dict(
             height=height, mass=mass, drive_stiffness=_hashable(drive_stiffness),
             drive_damping=_hashable(drive_damping), max_torque=_hashable(max_torque), push_interval=push_interval,
-            push_speed=tuple(push_speed), fall_height=fall_height, smooth_weight=smooth_weight, dt=dt,
+            push_speed=tuple(push_speed), push_schedule=push_schedule, fall_height=fall_height,
+            smooth_weight=smooth_weight, dt=dt,
             substeps=substeps, iterations=iterations, frame_skip=frame_skip, max_episode_steps=max_episode_steps,
             tree_solve=tree_solve,
         )  # fmt: skip
         if push_interval is not None and not push_interval > 0.0:
             raise ValueError(f"{type(self).__name__}: push_interval must be positive or None, got {push_interval!r}")
+        if push_schedule not in PUSH_SCHEDULES:
+            raise ValueError(
+                f"{type(self).__name__}: push_schedule must be one of {PUSH_SCHEDULES}, got {push_schedule!r}"
+            )
         low_speed, high_speed = (float(v) for v in push_speed)
         if not 0.0 <= low_speed <= high_speed:
             raise ValueError(f"{type(self).__name__}: push_speed must be (low, high) with 0 <= low <= high")
@@ -160,6 +176,7 @@ class RagdollEnv(DbdFuncEnv):
         self.fall_height = 0.55 * self.rest_height if fall_height is None else float(fall_height)
         self.push_interval = None if push_interval is None else float(push_interval)
         self.push_speed = (low_speed, high_speed)
+        self.push_schedule = push_schedule
         self.smooth_weight = float(smooth_weight)
         super().__init__(
             model,
@@ -210,13 +227,18 @@ class RagdollEnv(DbdFuncEnv):
         )
         return physics, task
 
-    def kick(self, key: jnp.ndarray) -> jnp.ndarray:
-        """(3,) m/s, world frame: the torso kick drawn by a step's key (zeros on most steps, always
-        without pushes). Step t's key is the second half of `jax.random.split` of the state's key."""
+    def kick(self, key: jnp.ndarray, step: jnp.ndarray) -> jnp.ndarray:
+        """(3,) m/s, world frame: the torso kick of the env step that starts at `step` (int, steps
+        since reset), drawn by the step's key (zeros on most steps, always without pushes). Step
+        t's key is the second half of `jax.random.split` of the state's key."""
         if self.push_interval is None:
             return jnp.zeros((3,), self.dtype)
         when, direction, size = jax.random.split(key, 3)
-        pushed = jax.random.uniform(when, (), self.dtype) < self.dt / self.push_interval
+        if self.push_schedule == "regular":
+            every = max(1, round(self.push_interval / self.dt))
+            pushed = (step > 0) & (step % every == 0)
+        else:
+            pushed = jax.random.uniform(when, (), self.dtype) < self.dt / self.push_interval
         angle = jax.random.uniform(direction, (), self.dtype, -jnp.pi, jnp.pi)
         speed = jax.random.uniform(size, (), self.dtype, *self.push_speed)
         change = speed * jnp.stack([jnp.cos(angle), jnp.sin(angle), 0.0 * angle])
@@ -227,14 +249,16 @@ class RagdollEnv(DbdFuncEnv):
         return dbd.State(
             pos=physics.pos,
             quat=physics.quat,
-            vel=physics.vel.at[self.torso].add(self.kick(key)),
+            vel=physics.vel.at[self.torso].add(self.kick(key, state.step)),
             ang_vel=physics.ang_vel,
         )
 
     def task_update(self, state: EnvState, action: jnp.ndarray, physics: dbd.State) -> RagdollState:
         # The same key split as _advance, so the kick recorded is the one applied.
         _, step_key = jax.random.split(state.key)
-        return RagdollState(time=state.task.time + self.dt, previous_action=action, push=self.kick(step_key))
+        return RagdollState(
+            time=state.task.time + self.dt, previous_action=action, push=self.kick(step_key, state.step)
+        )
 
     def observe_body(self, state: EnvState) -> jnp.ndarray:
         """The 133 numbers every ragdoll task observes (module docstring)."""
@@ -276,10 +300,11 @@ class RagdollEnv(DbdFuncEnv):
 
 
 class RagdollStand(RagdollEnv):
-    """dbdjax/RagdollStand-v0: stay upright and in place under random pushes.
+    """dbdjax/RagdollStand-v0: stay upright and in place under pushes.
 
-    Everything but the reward is `RagdollEnv`'s (module docstring); pushes every 2 s on average,
-    0.2-0.6 m/s on the torso (each survivable with the feet in place: module docstring). Reward per step, the sum of:
+    Everything but the reward is `RagdollEnv`'s (module docstring); a push every 2 s (at steps 60,
+    120, 180, 240), 0.2-0.6 m/s on the torso in a random direction (each survivable with the feet in
+    place: module docstring). Reward per step, the sum of:
       alive   = `alive_bonus` (1.0) while the episode runs,
       upright = -`upright_weight` (1.0) x (1 - z of the torso's up axis) (0 standing straight),
       height  = -`height_weight` (2.0) x |pelvis height - standing height| (m),

@@ -418,9 +418,11 @@ def test_ragdoll_action_zero_is_the_build_pose_and_one_slope_reaches_every_targe
     np.testing.assert_allclose(task.control_home, 0.0)
 
 
-def test_pushes_come_at_the_documented_rate_with_horizontal_kicks_of_the_documented_size(stand):
+def test_random_pushes_come_at_the_documented_rate_with_horizontal_kicks_of_the_documented_size():
+    stand = envs.RagdollStand(push_schedule="random")
     count = 40_000
-    kicks = np.asarray(quick_jit(jax.vmap(stand.kick))(jax.random.split(jax.random.PRNGKey(2), count)))
+    keys = jax.random.split(jax.random.PRNGKey(2), count)
+    kicks = np.asarray(quick_jit(jax.vmap(stand.kick))(keys, jnp.arange(count) % 300))
     pushed = np.linalg.norm(kicks, axis=1) > 0
     rate = stand.dt / stand.push_interval  # 1/60 per step
     assert abs(pushed.mean() - rate) < 4 * np.sqrt(rate * (1 - rate) / count)
@@ -428,11 +430,41 @@ def test_pushes_come_at_the_documented_rate_with_horizontal_kicks_of_the_documen
     # The default range, 0.2-0.6 m/s (envs/ragdoll_envs.py: survivable with the feet in place).
     assert np.all(kicks[:, 2] == 0.0) and speed.min() >= 0.2 - 1e-6 and speed.max() <= 0.6 + 1e-6
     assert speed.min() < 0.22 and speed.max() > 0.58  # the whole range is drawn (~670 kicks)
+
+
+def test_regular_pushes_come_every_two_seconds_from_the_start_in_every_direction(stand):
+    assert stand.push_schedule == "regular"  # RagdollStand-v0's default
+    episodes, steps = 400, 300
+    keys = jax.random.split(jax.random.PRNGKey(2), episodes * steps)
+    step = jnp.tile(jnp.arange(steps), episodes)
+    kicks = np.asarray(quick_jit(jax.vmap(stand.kick))(keys, step)).reshape(episodes, steps, 3)
+    pushed = np.linalg.norm(kicks, axis=-1) > 0
+    every = round(stand.push_interval / stand.dt)  # 60 steps: 2 s at 30 Hz
+    expected = np.zeros(steps, bool)
+    expected[every::every] = True  # steps 60, 120, 180, 240: none at the start, four an episode
+    assert pushed.sum(1).tolist() == [4] * episodes and np.all(pushed == expected)
+    speed = np.linalg.norm(kicks[pushed], axis=-1)
+    assert np.all(kicks[..., 2] == 0.0) and speed.min() >= 0.2 - 1e-6 and speed.max() <= 0.6 + 1e-6
+    assert speed.min() < 0.21 and speed.max() > 0.59  # the whole range is drawn (1,600 kicks)
+    angle = np.arctan2(kicks[pushed][:, 1], kicks[pushed][:, 0])
+    counts = np.histogram(angle, bins=8, range=(-np.pi, np.pi))[0]
+    assert counts.min() > 150 and counts.max() < 250  # every direction alike (200 a bin expected)
+
+
+def test_the_kick_of_a_step_lands_on_the_torso_before_the_physics(stand):
     state, _, _ = stand.reset(jax.random.PRNGKey(3))
+    state = dataclasses.replace(state, step=jnp.asarray(120, state.step.dtype))  # a push step
     key = jax.random.PRNGKey(4)
+    kick = stand.kick(key, state.step)
+    assert float(jnp.linalg.norm(kick)) >= 0.2
     kicked = stand.task_before_physics(state, jnp.zeros(26), key)
-    expected = state.physics.vel.at[stand.torso].add(stand.kick(key))
+    expected = state.physics.vel.at[stand.torso].add(kick)
     np.testing.assert_array_equal(np.asarray(kicked.vel), np.asarray(expected))
+
+
+def test_a_push_schedule_that_is_not_known_is_refused():
+    with pytest.raises(ValueError, match="push_schedule must be one of"):
+        envs.RagdollStand(push_schedule="poisson")
 
 
 def test_a_fall_ends_the_episode(stand):

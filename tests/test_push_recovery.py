@@ -71,8 +71,10 @@ def test_the_start_counts_a_kick_before_the_doll_has_moved_its_capture_point(rec
     assert early[0] == 0 and late[0] == -1
 
 
-def test_the_replayed_pushes_are_the_ones_the_env_applies_in_those_episodes(recovery):
-    task = RagdollStand(max_episode_steps=30, push_interval=0.1)  # a push every third step on average
+@pytest.mark.parametrize("schedule", ["regular", "random"])
+def test_the_replayed_pushes_are_the_ones_the_env_applies_in_those_episodes(recovery, schedule):
+    # A push every third step (on average for the random schedule).
+    task = RagdollStand(max_episode_steps=30, push_interval=0.1, push_schedule=schedule)
     kicks = recovery.episode_kicks(task, 3, seed=5, steps=30)
 
     def rollout(key):
