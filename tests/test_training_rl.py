@@ -332,6 +332,50 @@ PPO_STEPS = 64 * 16 * 100
 APG_UPDATES = 40
 
 
+def test_train_env_arguments_reach_the_env_trained_on_and_not_the_one_evaluated():
+    parser = argparse.ArgumentParser()
+    rl.add_common_arguments(parser, "ppo", 8, 1e-3, (16,))
+    args = parser.parse_args(["--env-arg", "push_interval=3.0", "--train-env-arg", 'push_schedule="random"',
+                              "--train-env-arg", "push_speed=[0.3, 0.7]"])  # fmt: skip
+    trained, judged = rl.tasks_of(args)
+    assert trained.push_schedule == "random" and trained.push_speed == (0.3, 0.7) and trained.push_interval == 3.0
+    assert judged.push_schedule == "regular" and judged.push_speed == (0.2, 0.6) and judged.push_interval == 3.0
+    plain, none = rl.tasks_of(parser.parse_args(["--env-arg", "push_interval=3.0"]))
+    assert none is None and plain.push_schedule == "regular"
+    with pytest.raises(SystemExit, match="--train-env-arg wants NAME=VALUE"):
+        rl.tasks_of(parser.parse_args(["--train-env-arg", "push_schedule"]))
+
+
+def test_every_evaluation_runs_the_eval_task_when_one_is_given(monkeypatch):
+    evaluated = []
+
+    def fake_evaluate(task, params, num_episodes, seed):
+        evaluated.append(task.name)
+        return {"returns": np.zeros(num_episodes), "lengths": np.full(num_episodes, 10), "mean_return": 0.0,
+                "mean_length": 10.0, "survival": 1.0}  # fmt: skip
+
+    monkeypatch.setattr(rl, "evaluate", fake_evaluate)
+    trained = types.SimpleNamespace(name="trained", max_episode_steps=10, observation_size=3, action_size=2)
+    judged = types.SimpleNamespace(name="judged", max_episode_steps=20, observation_size=3, action_size=2)
+
+    def train(eval_task, keep_best=True):
+        return rl.run(
+            "test", trained, lambda state: (state + 1, {"loss": 0.0}), 0, lambda state: {"w": np.array(state)},
+            rl.Clock(), steps_per_iteration=4, iterations=2, time_budget_s=None, seed=7, eval_every=1,
+            eval_episodes=3, evaluate_initial=True, progress=False, bar_metric="loss", line=str, keep_best=keep_best,
+            eval_task=eval_task,
+        )  # fmt: skip
+
+    result = train(judged)
+    # The initial policy, two validations, the last and the kept policies' reports: all on the eval task.
+    assert evaluated == ["judged"] * 5 and result.summary["max_episode_steps"] == 20
+    evaluated.clear()
+    train(None, keep_best=False)
+    assert set(evaluated) == {"trained"}
+    with pytest.raises(ValueError, match="eval_task's action_size"):
+        train(types.SimpleNamespace(name="other", max_episode_steps=10, observation_size=3, action_size=4))
+
+
 def test_keep_best_chooses_on_validation_episodes_and_reports_on_the_others(monkeypatch):
     """With keep_best the evaluations during training run the validation episodes, the policy kept
     is the best there (not the best on the reported episodes), and it is reported on the reported

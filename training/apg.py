@@ -189,13 +189,15 @@ def train(
     progress: bool = True,
     devices: Sequence[jax.Device] | None = None,
     keep_best: bool = False,
+    eval_task: DbdFuncEnv | None = None,
 ) -> Result:
     """Train a policy on `task` by analytic policy gradients for `updates` updates or until
     `time_budget_s` wall seconds (compilation included, evaluations not) have passed, whichever
     comes first (at least one must be given). eval_every: a deterministic evaluation of
     `eval_episodes` episodes every that many updates (0: only at the end). devices: the envs split
     over the most of these (default: every local device) that divides num_envs (`rl.env_devices`).
-    keep_best: return the policy that did best on validation episodes (`rl.run`). Returns a `Result`."""
+    keep_best: return the policy that did best on validation episodes (`rl.run`). eval_task: the env
+    every evaluation runs (default `task`; `rl.run`). Returns a `Result`."""
     if updates is None and time_budget_s is None:
         raise ValueError("train: give updates or time_budget_s")
     if task.max_episode_steps is None:
@@ -218,6 +220,7 @@ def train(
         steps_per_iteration=config.num_envs * config.horizon, iterations=updates, time_budget_s=time_budget_s,
         seed=seed, eval_every=eval_every, eval_episodes=eval_episodes, evaluate_initial=evaluate_initial,
         progress=progress, bar_metric="reward_per_step", line=_line, keep_best=keep_best,
+        eval_task=eval_task,
         summary={"algorithm": "apg", "config": dataclasses.asdict(config), "devices": len(devices)},
     )  # fmt: skip
     result.summary["updates"] = len(result.history)
@@ -256,9 +259,10 @@ def main(argv: list[str] | None = None) -> Result:
                        hidden=tuple(args.hidden), remat=not args.no_remat,
                        absorb_normaliser_updates=args.absorb_normaliser)  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
-    result = train(rl.task_of(args), config, updates=args.updates, time_budget_s=budget, seed=args.seed,
+    task, eval_task = rl.tasks_of(args)
+    result = train(task, config, updates=args.updates, time_budget_s=budget, seed=args.seed,
                    eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
-                   progress=not args.no_progress, keep_best=args.keep_best)  # fmt: skip
+                   progress=not args.no_progress, keep_best=args.keep_best, eval_task=eval_task)  # fmt: skip
     s = result.summary
     rl.finish(args, "apg", result, f"{s['updates']} updates ({s['skipped_updates']} skipped), ")
     return result

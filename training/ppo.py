@@ -545,6 +545,7 @@ def train(
     progress: bool = True,
     devices: Sequence[jax.Device] | None = None,
     keep_best: bool = False,
+    eval_task: DbdFuncEnv | None = None,
 ) -> Result:
     """Train a PPO policy on `task` (its max_episode_steps is the time limit; it must have one).
 
@@ -554,7 +555,8 @@ def train(
     episodes every that many iterations (0: only at the end). evaluate_initial: also evaluate the
     untrained policy first (Result.initial_evaluation). devices: the envs split over the most of
     these (default: every local device) that divides num_envs (`rl.env_devices`). keep_best: return
-    the policy that did best on validation episodes (`rl.run`). Returns a `Result`.
+    the policy that did best on validation episodes (`rl.run`). eval_task: the env every evaluation
+    runs (default `task`, as Brax's `eval_env`; `rl.run`). Returns a `Result`.
     """
     if total_steps is None and time_budget_s is None:
         raise ValueError("train: give total_steps or time_budget_s")
@@ -577,6 +579,7 @@ def train(
         steps_per_iteration=config.batch_size, iterations=iterations, time_budget_s=time_budget_s, seed=seed,
         eval_every=eval_every, eval_episodes=eval_episodes, evaluate_initial=evaluate_initial, progress=progress,
         bar_metric="episode_return", line=_line, failure=failure, keep_best=keep_best,
+        eval_task=eval_task,
         summary={"algorithm": "ppo", "config": dataclasses.asdict(config), "devices": len(devices)},
     )  # fmt: skip
     result.summary["iterations"] = len(result.history)
@@ -666,9 +669,10 @@ def main(argv: list[str] | None = None) -> Result:
                        normalise_observations=not args.no_normalise,
                        absorb_normaliser_updates=not args.no_absorb_normaliser, hidden=tuple(args.hidden))  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
-    result = train(rl.task_of(args), config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,
+    task, eval_task = rl.tasks_of(args)
+    result = train(task, config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,
                    eval_every=args.eval_every, eval_episodes=args.eval_episodes, evaluate_initial=True,
-                   progress=not args.no_progress, keep_best=args.keep_best)  # fmt: skip
+                   progress=not args.no_progress, keep_best=args.keep_best, eval_task=eval_task)  # fmt: skip
     rl.finish(args, "ppo", result, "")
     return result
 

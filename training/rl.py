@@ -323,13 +323,16 @@ def run(
     failure: Callable[[dict], str | None] = lambda row: None,
     summary: dict | None = None,
     keep_best: bool = False,
+    eval_task: DbdFuncEnv | None = None,
 ) -> Result:
     """Run `iteration(state) -> (state, metrics)` (jitted by the caller) until `iterations` or
     `time_budget_s` wall seconds of `clock` (compilation included, evaluations not: the summary's
     `evaluation_wall_s` has them), logging one history row each,
     evaluating every `eval_every` iterations and at the end. failure(row): a reason to stop early,
     or None. summary: the trainer's own entries (algorithm, config, ...); timings, evaluations and
-    the machine are added here.
+    the machine are added here. eval_task: the env every evaluation runs (validation and reported
+    episodes; default `task`, the one trained on), as Brax's `eval_env`: train on a varied env,
+    judge on the one that matters.
 
     The reported evaluation runs the episodes of seed + 1. keep_best: the evaluations every
     `eval_every` iterations and of the last policy run other episodes instead, the validation
@@ -339,6 +342,11 @@ def run(
     the choice."""
     from .trajopt import _Progress
 
+    judged = task if eval_task is None else eval_task
+    for size in ("observation_size", "action_size"):
+        if getattr(judged, size, None) != getattr(task, size, None):
+            raise ValueError(f"{name}: eval_task's {size} ({getattr(judged, size, None)}) is not the trained "
+                             f"task's ({getattr(task, size, None)})")  # fmt: skip
     report_seed = seed + 1
     validation_seed = report_seed + VALIDATION_SEED_OFFSET if keep_best else report_seed
 
@@ -350,7 +358,7 @@ def run(
         (the clock stops: evaluations report on the training, they are not part of it)."""
         if (at, episodes_seed) not in evaluations:
             with clock.excluding():
-                evaluations[at, episodes_seed] = evaluate(task, params, num_episodes=eval_episodes,
+                evaluations[at, episodes_seed] = evaluate(judged, params, num_episodes=eval_episodes,
                                                           seed=episodes_seed)  # fmt: skip
         return evaluations[at, episodes_seed]
 
@@ -408,7 +416,7 @@ def run(
                    train_wall_s=train_wall, train_cpu_s=train_cpu,
                    env_steps_per_s=index * steps_per_iteration / train_wall,
                    evaluation_wall_s=clock.excluded_wall,
-                   load_average_at_start=clock.load_at_start, max_episode_steps=task.max_episode_steps,
+                   load_average_at_start=clock.load_at_start, max_episode_steps=judged.max_episode_steps,
                    evaluation=scalars(evaluation), evaluation_lengths=evaluation["lengths"].tolist(),
                    evaluation_returns=evaluation["returns"].tolist(),
                    evaluation_seed=report_seed, keep_best=keep_best,
@@ -443,6 +451,11 @@ def add_common_arguments(parser, name: str, num_envs: int, learning_rate: float,
         "--env-arg", action="append", default=[], metavar="NAME=VALUE",
         help="a keyword argument of the env's constructor, VALUE read as JSON (e.g. push_speed=[0.2,0.6]); repeatable",
     )  # fmt: skip
+    parser.add_argument(
+        "--train-env-arg", action="append", default=[], metavar="NAME=VALUE",
+        help="as --env-arg, for the env trained on only: the evaluations run the env without it "
+        "(e.g. push_schedule=\"random\" to train on pushes at random times and judge on the regular ones)",
+    )  # fmt: skip
     parser.add_argument("--num-envs", type=int, default=num_envs)
     parser.add_argument("--lr", type=float, default=learning_rate)
     parser.add_argument("--hidden", type=int, nargs="+", default=list(hidden))
@@ -463,20 +476,29 @@ def add_common_arguments(parser, name: str, num_envs: int, learning_rate: float,
     )  # fmt: skip
 
 
-def task_of(args) -> DbdFuncEnv:
+def task_of(args, training: bool = False) -> DbdFuncEnv:
     """The env `--env` names, with `--episode-steps` as its time limit (default: the env's) and the
-    `--env-arg NAME=VALUE` keyword arguments (VALUE as JSON; lists become tuples)."""
+    `--env-arg NAME=VALUE` keyword arguments (VALUE as JSON; lists become tuples); training: with
+    the `--train-env-arg` ones too (they win over --env-arg's)."""
     from dbdjax.envs import TASKS
 
     kwargs = {}
-    for item in getattr(args, "env_arg", []):
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            raise SystemExit(f"--env-arg wants NAME=VALUE, got {item!r}")
-        parsed = json.loads(value)
-        kwargs[name] = tuple(parsed) if isinstance(parsed, list) else parsed
+    flags = [("--env-arg", "env_arg")] + ([("--train-env-arg", "train_env_arg")] if training else [])
+    for flag, field in flags:
+        for item in getattr(args, field, []):
+            name, sep, value = item.partition("=")
+            if not sep or not name:
+                raise SystemExit(f"{flag} wants NAME=VALUE, got {item!r}")
+            parsed = json.loads(value)
+            kwargs[name] = tuple(parsed) if isinstance(parsed, list) else parsed
     cls = TASKS[args.env]
     return cls(max_episode_steps=args.episode_steps or cls.default_max_episode_steps, **kwargs)
+
+
+def tasks_of(args) -> tuple[DbdFuncEnv, DbdFuncEnv | None]:
+    """(the env trained on, the env the evaluations run or None where it is the same): `task_of`
+    with and without `--train-env-arg`."""
+    return task_of(args, training=True), (task_of(args) if getattr(args, "train_env_arg", []) else None)
 
 
 def finish(args, name: str, result: Result, counts: str) -> None:
@@ -484,9 +506,13 @@ def finish(args, name: str, result: Result, counts: str) -> None:
     trainer's own "N updates, " style prefix."""
     stem = args.name or f"{name}_" + env_stem(args.env)
     env_args = list(getattr(args, "env_arg", []))
+    train_env_args = list(getattr(args, "train_env_arg", []))
     title = f"{name.upper()} on {args.env}" + (f" ({', '.join(env_args)})" if env_args else "")
+    if train_env_args:
+        title += f", trained with {', '.join(train_env_args)}"
     command = "python -m dbdjax.training." + name + " " + " ".join(sys.argv[1:])
-    result.summary.update(env=args.env, env_args=env_args, title=title, command=command)
+    result.summary.update(env=args.env, env_args=env_args, train_env_args=train_env_args, title=title,
+                          command=command)  # fmt: skip
     paths = save_result(args.out, stem, result.params, result.history, result.summary, plot=not args.no_plot)
     s, e = result.summary, result.evaluation
     print(f"{name} on {args.env}: {counts}{s['env_steps']} env steps in {s['train_wall_s']:.0f} s wall "
