@@ -143,7 +143,7 @@ def leans(task: RagdollStand, ankle_targets, steps: int = 150) -> dict:
             "survived": alive[-1].astype(int).tolist()}  # fmt: skip
 
 
-def random_pushes(speed_ranges, episodes: int = 32, steps: int = 300, push_schedule: str = "regular") -> list[dict]:
+def env_pushes(speed_ranges, episodes: int = 32, steps: int = 300, push_schedule: str = "regular") -> list[dict]:
     rows = []
     for low, high in speed_ranges:
         task = RagdollStand(max_episode_steps=steps, push_speed=(low, high), push_interval=2.0 if high > 0 else None,
@@ -476,7 +476,7 @@ def main() -> None:
         result["leans"] = leans(task, [-0.1, -0.05, -0.025, 0.0, 0.025, 0.05])
         print(result["leans"], flush=True)
     if "pushes" in sections:
-        result["random_pushes"] = random_pushes([(0.0, 0.0), (0.3, 0.6), (0.5, 1.5)], push_schedule=args.push_schedule)
+        result["random_pushes"] = env_pushes([(0.0, 0.0), (0.3, 0.6), (0.5, 1.5)], push_schedule=args.push_schedule)
     if "budgets" in sections:
         result["solver_budgets"] = solver_budgets([(2, 8), (4, 4), (3, 8), (4, 6), (2, 16), (4, 8), (8, 4), (2, 32),
                                                    (8, 8)])  # fmt: skip

@@ -233,6 +233,7 @@ class RagdollEnv(DbdFuncEnv):
         t's key is the second half of `jax.random.split` of the state's key."""
         if self.push_interval is None:
             return jnp.zeros((3,), self.dtype)
+        # Split alike for both schedules: the schedule alone decides which steps' draws are pushes.
         when, direction, size = jax.random.split(key, 3)
         if self.push_schedule == "regular":
             every = max(1, round(self.push_interval / self.dt))
