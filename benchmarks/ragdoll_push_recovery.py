@@ -325,6 +325,23 @@ def clairvoyant_survival(kicks: np.ndarray, low, high, omega: float, xi_per_kick
     return failed_at
 
 
+def pushes_before_falls(kicks: np.ndarray, lengths: np.ndarray, steps: int) -> list[dict]:
+    """For each episode a policy lost (length < steps), the step it fell and the pushes before it:
+    [step, forward, left] m/s in the starting heading frame (`episode_kicks`' (episodes, steps, 2)),
+    and whether one of them was a hard backward push (> 0.5 m/s, within 45 degrees of backwards),
+    the kick a balance with the feet in place has least margin for (section 1)."""
+    rows = []
+    for episode in np.flatnonzero(lengths < steps):
+        kicked = kicks[episode, : lengths[episode]]
+        pushed = np.flatnonzero(np.abs(kicked).sum(-1) > 0)
+        forward, left = kicked[pushed, 0], kicked[pushed, 1]
+        hard_backward = (np.hypot(forward, left) > 0.5) & (-forward > np.abs(left))
+        rows.append({"episode": int(episode), "fell_at_step": int(lengths[episode]),
+                     "pushes": [[int(step), *np.round(kicked[step], 3).tolist()] for step in pushed],
+                     "after_a_hard_backward_push": bool(hard_backward.any())})  # fmt: skip
+    return rows
+
+
 def _falls_beside(fell: np.ndarray, lost: dict[str, np.ndarray]) -> dict:
     """How a policy's falls (episodes,) split over the episodes each ideal balance loses or keeps."""
     row = {"survived": int((~fell).sum()), "episodes": len(fell)}
@@ -423,11 +440,15 @@ def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: l
 
         params, _ = checkpoint.load(path)
         evaluation = rl.evaluate(task, params, policy_episodes, seed=policy_seed)
-        fell = np.asarray(evaluation["lengths"]) < steps
+        lengths = np.asarray(evaluation["lengths"])
+        falls = pushes_before_falls(kicks["policies"], lengths, steps)
         result["checkpoints"].append({"checkpoint": Path(path).name, "mean_return": evaluation["mean_return"],
-                                      **_falls_beside(fell, lost["policies"]),
-                                      "lengths": np.asarray(evaluation["lengths"]).tolist()})  # fmt: skip
-        print({key: value for key, value in result["checkpoints"][-1].items() if key != "lengths"}, flush=True)
+                                      **_falls_beside(lengths < steps, lost["policies"]),
+                                      "falls_after_a_hard_backward_push": sum(f["after_a_hard_backward_push"]
+                                                                              for f in falls),
+                                      "falls": falls, "lengths": lengths.tolist()})  # fmt: skip
+        print({key: value for key, value in result["checkpoints"][-1].items() if key not in ("lengths", "falls")},
+              flush=True)  # fmt: skip
     return result
 
 

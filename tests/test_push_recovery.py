@@ -128,3 +128,20 @@ def test_knowing_the_kicks_saves_every_episode_the_reacting_balance_saves_and_so
     # A kick at the first step that takes xi past the heel (2.17 cm behind the start) is lost anyway.
     assert recovery.clairvoyant_survival(_kicks((0, -0.22, 0.0)), LOW, HIGH, OMEGA, XI_PER_KICK, DT, start)[0] == 0
     assert recovery.clairvoyant_survival(_kicks((0, -0.21, 0.0)), LOW, HIGH, OMEGA, XI_PER_KICK, DT, start)[0] == -1
+
+
+def test_a_fall_lists_the_pushes_before_it_and_says_whether_one_was_hard_and_backward(recovery):
+    # Episode 0 falls at step 70 after a 0.55 m/s kick 30 degrees off backwards (and a later push
+    # that never came); episode 1 falls at 50 after a hard sideways kick; episode 2 survives.
+    kicks = np.concatenate([
+        _kicks((10, -0.55 * np.cos(0.52), 0.55 * np.sin(0.52)), (90, -0.6, 0.0), steps=120),
+        _kicks((20, 0.0, 0.58), steps=120),
+        _kicks((30, -0.6, 0.0), steps=120),
+    ])  # fmt: skip
+    falls = recovery.pushes_before_falls(kicks, np.array([70, 50, 120]), 120)
+    assert [(f["episode"], f["fell_at_step"], f["after_a_hard_backward_push"]) for f in falls] == [
+        (0, 70, True),
+        (1, 50, False),
+    ]
+    assert [push[0] for push in falls[0]["pushes"]] == [10]
+    np.testing.assert_allclose(falls[1]["pushes"][0], [20, 0.0, 0.58])
