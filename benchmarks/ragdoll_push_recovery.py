@@ -325,13 +325,14 @@ def clairvoyant_survival(kicks: np.ndarray, low, high, omega: float, xi_per_kick
     return failed_at
 
 
-def pushes_before_falls(kicks: np.ndarray, lengths: np.ndarray, steps: int) -> list[dict]:
-    """For each episode a policy lost (length < steps), the step it fell and the pushes before it:
+def pushes_before_falls(kicks: np.ndarray, lengths: np.ndarray, survived: np.ndarray) -> list[dict]:
+    """For each episode a policy lost (`rl.evaluate`'s "lengths" and "survived"), the step it fell
+    (its length: the last step's number for a fall on the last step) and the pushes before it:
     [step, forward, left] m/s in the starting heading frame (`episode_kicks`' (episodes, steps, 2)),
     and whether one of them was a hard backward push (> 0.5 m/s, within 45 degrees of backwards),
     the kick a balance with the feet in place has least margin for (section 1)."""
     rows = []
-    for episode in np.flatnonzero(lengths < steps):
+    for episode in np.flatnonzero(~survived):
         kicked = kicks[episode, : lengths[episode]]
         pushed = np.flatnonzero(np.abs(kicked).sum(-1) > 0)
         forward, left = kicked[pushed, 0], kicked[pushed, 1]
@@ -440,10 +441,10 @@ def feet_in_place_bound(task: RagdollStand, episodes: int, seed: int, compare: l
 
         params, _ = checkpoint.load(path)
         evaluation = rl.evaluate(task, params, policy_episodes, seed=policy_seed)
-        lengths = np.asarray(evaluation["lengths"])
-        falls = pushes_before_falls(kicks["policies"], lengths, steps)
+        lengths, survived = np.asarray(evaluation["lengths"]), np.asarray(evaluation["survived"])
+        falls = pushes_before_falls(kicks["policies"], lengths, survived)
         result["checkpoints"].append({"checkpoint": Path(path).name, "mean_return": evaluation["mean_return"],
-                                      **_falls_beside(lengths < steps, lost["policies"]),
+                                      **_falls_beside(~survived, lost["policies"]),
                                       "falls_after_a_hard_backward_push": sum(f["after_a_hard_backward_push"]
                                                                               for f in falls),
                                       "falls": falls, "lengths": lengths.tolist()})  # fmt: skip

@@ -138,7 +138,7 @@ def test_a_fall_lists_the_pushes_before_it_and_says_whether_one_was_hard_and_bac
         _kicks((20, 0.0, 0.58), steps=120),
         _kicks((30, -0.6, 0.0), steps=120),
     ])  # fmt: skip
-    falls = recovery.pushes_before_falls(kicks, np.array([70, 50, 120]), 120)
+    falls = recovery.pushes_before_falls(kicks, np.array([70, 50, 120]), np.array([False, False, True]))
     assert [(f["episode"], f["fell_at_step"], f["after_a_hard_backward_push"]) for f in falls] == [
         (0, 70, True),
         (1, 50, False),

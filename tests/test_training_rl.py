@@ -204,6 +204,22 @@ def test_untrained_policy_acts_the_home_pose(stand):
     np.testing.assert_array_equal(np.asarray(action), np.broadcast_to(np.asarray(home), action.shape))
 
 
+def test_an_episode_that_falls_on_its_last_step_is_not_counted_as_survived():
+    """rl.evaluate's "survived" is whether an episode reached its last step without terminating: one
+    cut short to end on the step its fall terminates has that length and did not survive."""
+    task = RagdollStand(max_episode_steps=60, push_interval=0.2, push_speed=(2.0, 2.0))
+    stats = rl.init_normaliser(task.observation_size)
+    params = dict(ppo.init_params(task, ppo.PPOConfig(hidden=(8,)), jax.random.PRNGKey(0)),
+                  obs_mean=stats.mean, obs_var=stats.var, obs_count=stats.count)  # fmt: skip
+    whole = rl.evaluate(task, params, num_episodes=4, seed=3)
+    fell = int(np.argmin(whole["lengths"]))
+    length = int(whole["lengths"][fell])
+    assert length < 60 and not whole["survived"][fell]
+    cut = rl.evaluate(task, params, num_episodes=4, seed=3, max_steps=length)
+    assert cut["lengths"][fell] == length and not cut["survived"][fell]
+    assert cut["survival"] == float(np.mean(cut["survived"]))
+
+
 def test_initial_log_std_is_set_per_action_entry_and_bad_entries_are_refused(stand):
     config = ppo.PPOConfig(init_log_std=-4.6, init_log_std_of=((17, -6.2), (22, -6.0)))
     log_std = np.asarray(ppo.init_params(stand, config, jax.random.PRNGKey(0))["log_std"])

@@ -207,8 +207,9 @@ def evaluate(
 
     An episode runs until it terminates or reaches `max_steps` (default task.max_episode_steps).
     The same seed gives the same episodes (start headings, pushes) for any policy. Returns numpy
-    arrays "returns" and "lengths" (num_episodes,) and floats "mean_return", "mean_length",
-    "survival" (the fraction that reached max_steps without terminating).
+    arrays "returns" and "lengths" (num_episodes,), "survived" (num_episodes,) bool (reached max_steps
+    without terminating: a fall on the last step has length max_steps and survived False), and floats
+    "mean_return", "mean_length", "survival" (the fraction survived).
     """
     steps = max_steps or task.max_episode_steps
     if steps is None:
@@ -219,6 +220,7 @@ def evaluate(
     return {
         "returns": returns,
         "lengths": lengths,
+        "survived": alive,
         "mean_return": float(returns.mean()),
         "mean_length": float(lengths.mean()),
         "survival": float(alive.mean()),
