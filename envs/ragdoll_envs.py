@@ -115,7 +115,9 @@ class RagdollEnv(DbdFuncEnv):
     dt, substeps, iterations, tree_solve: the physics (`ModelBuilder.finalize`). tree_solve=True is
     not fit for training yet: at 2 substeps x 2 iterations it survived scripted pushes as the default
     4 x 8 sweeps do (session 27), but under a PPO policy's actions a foot point that starts sliding
-    blows the leg up from rest (12 of 128 episodes; README, session 28).
+    blows the leg up from rest (12 of 128 episodes; README, session 28). relaxation: xi of the
+    doll's joint rows (`ragdoll.build`): 1.3 at 4 x 4 sweeps stands and recovers as 4 x 8 at 1.0
+    does at about half the cost, a cheaper physics to train on (README, session 45).
     """
 
     default_max_episode_steps = 300
@@ -140,6 +142,7 @@ class RagdollEnv(DbdFuncEnv):
         max_episode_steps: int | None = None,
         config: dict[str, Any] | None = None,
         tree_solve: bool = False,
+        relaxation: float = 1.0,
     ):
         base = dict(
             height=height, mass=mass, drive_stiffness=_hashable(drive_stiffness),
@@ -147,7 +150,7 @@ class RagdollEnv(DbdFuncEnv):
             push_speed=tuple(push_speed), push_schedule=push_schedule, fall_height=fall_height,
             smooth_weight=smooth_weight, dt=dt,
             substeps=substeps, iterations=iterations, frame_skip=frame_skip, max_episode_steps=max_episode_steps,
-            tree_solve=tree_solve,
+            tree_solve=tree_solve, relaxation=relaxation,
         )  # fmt: skip
         if push_interval is not None and not push_interval > 0.0:
             raise ValueError(f"{type(self).__name__}: push_interval must be positive or None, got {push_interval!r}")
@@ -160,7 +163,7 @@ class RagdollEnv(DbdFuncEnv):
             raise ValueError(f"{type(self).__name__}: push_speed must be (low, high) with 0 <= low <= high")
         builder, doll = ragdoll.build(
             height=height, mass=mass, drive_stiffness=drive_stiffness, drive_damping=drive_damping,
-            max_torque=max_torque,
+            max_torque=max_torque, relaxation=relaxation,
         )  # fmt: skip
         model = builder.finalize(dt=dt, substeps=substeps, iterations=iterations, tree_solve=tree_solve)
         if model.num_controls != doll.num_controls:

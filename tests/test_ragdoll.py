@@ -262,6 +262,36 @@ def test_pose_control_drives_the_standing_doll_to_the_pose(standing):
     assert np.abs(pelvis[:, 2] - doll.rest_height).max() < 0.02  # still standing
 
 
+def test_over_relaxed_joints_hold_the_leaning_doll_at_half_the_sweeps():
+    """DBD 4.2's successive over-relaxation (1 < xi < 2) on the doll's joints: at 4 substeps x 4
+    iterations, ankles driven to a 0.036 rad forward lean ramped in over 1 s, the ankles sag to
+    about -0.05 rad after 2 s with xi = 1.3 (4 x 8 sweeps at xi = 1: -0.052; the drive's own sag,
+    converged: -0.0375) and to -0.11 at xi = 1, whose doll then tips over (README, session 45)."""
+    lean = -0.036
+
+    def ankles_after_two_seconds(relaxation):
+        builder, doll = ragdoll.build(relaxation=relaxation)
+        model = builder.finalize(dt=ragdoll.DT, substeps=4, iterations=4)
+        assert np.all(np.asarray(model.joints.relaxation) == relaxation)  # every joint
+        control = jnp.asarray(ragdoll.pose_control(doll, {"ankle_l": lean, "ankle_r": lean}), jnp.float32)
+        ramp = jnp.minimum(jnp.arange(1, 121) / 60.0, 1.0)[:, None]
+        final, trajectory = jax.jit(lambda c: dbd.rollout(model, dbd.init(model), c))(ramp * control)
+        assert bool(dbd.is_finite(final))
+        ankles = [_rotation_from_rest(final, doll, f"shin_{s}", f"foot_{s}")[1] for s in "lr"]
+        return np.asarray(ankles), np.asarray(trajectory.pos[:, doll.bodies["pelvis"], 2])
+
+    over, pelvis = ankles_after_two_seconds(1.3)
+    plain, _ = ankles_after_two_seconds(1.0)
+    np.testing.assert_allclose(over, -0.0375, atol=0.02)
+    assert np.all(plain < -0.09)  # without it, the sweeps leave the ankles sagging three times as far
+    assert pelvis.min() > 0.97
+
+
+def test_ragdoll_refuses_a_relaxation_outside_zero_to_two_by_joint():
+    with pytest.raises(ValueError, match=r"ball joint 0 \(.waist.\): relaxation must be in \(0, 2\)"):
+        ragdoll.build(relaxation=2.0)  # the first joint built is named
+
+
 @pytest.mark.slow
 def test_demo_keyframes_leave_the_doll_standing(standing):
     """examples/ragdoll_demo.py's six poses, one second each, then one second back to the build
