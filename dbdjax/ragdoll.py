@@ -344,7 +344,8 @@ def build(
     relaxation: xi of every joint's rows (DBD (46), 0 < xi < 2; `add_ball_joint`). Above 1 the
       sweeps over-relax (SOR, DBD 4.2) and pass the body's weight down to the feet in fewer of
       them: at 4 substeps x 4 iterations with 1.3 the leaning doll holds its ankles as 4 x 8 sweeps
-      at 1.0 do, where at 1.0 they sag three times as far and it tips over (README, session 45).
+      at 1.0 do, where at 1.0 they sag twice as far and the kicked doll falls
+      (`benchmarks/ragdoll_relaxation.py`; README, session 45).
     Returns (builder, Ragdoll). Finalize the builder yourself, e.g. with DT, SUBSTEPS, ITERATIONS.
     """
     builder = ModelBuilder() if builder is None else builder

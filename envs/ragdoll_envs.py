@@ -116,8 +116,9 @@ class RagdollEnv(DbdFuncEnv):
     not fit for training yet: at 2 substeps x 2 iterations it survived scripted pushes as the default
     4 x 8 sweeps do (session 27), but under a PPO policy's actions a foot point that starts sliding
     blows the leg up from rest (12 of 128 episodes; README, session 28). relaxation: xi of the
-    doll's joint rows (`ragdoll.build`): 1.3 at 4 x 4 sweeps stands and recovers as 4 x 8 at 1.0
-    does at about half the cost, a cheaper physics to train on (README, session 45).
+    doll's joint rows (`ragdoll.build`): at 4 x 4 sweeps with 1.3 the leaning doll stands through
+    scripted kicks as at 4 x 8 with 1.0, 1.7-1.85x cheaper, but PPO learned to balance worse on it
+    (72% against 90-93% in 30 minutes, one run; README, session 45).
     """
 
     default_max_episode_steps = 300
