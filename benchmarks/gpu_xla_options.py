@@ -10,14 +10,15 @@ replays many kernels. This script measures each such option set on the same engi
 batches, side by side in one run:
 
     python benchmarks/gpu_xla_options.py --models humanoid --engines dbdjax-dbd brax-positional \\
-        --batches 1 4096 --out benchmarks/results/gpu_xla_options.json
+        --batches 1 4096 --out benchmarks/results/gpu_xla_options_h200.json
 
 Every variant runs in a child process with its options in XLA_FLAGS, or, named NAME@options,
 passed to `jax.jit(compiler_options=...)` (whether one compiled program can take them, as
 `dbd.compiler_options` would hand them out). Variants that unroll every loop time one step per call
 (`chunk` 1 in the results): the scan of `--chunk` steps would be unrolled too. The children compile
-at the same time; once all have compiled (or `--compile-wait` seconds have passed) they time one after another under a
-file lock, so no timing shares the GPU or the host with another child's compile. A timing is one
+at the same time; once all have compiled (or `--compile-wait` seconds have passed) they time one
+after another under a file lock, so no timing shares the GPU or the host with another child's
+compile. A timing is one
 jitted call of `--chunk` vmapped steps (a `lax.scan`), called repeatedly for `--seconds` after two
 untimed calls, as brax_comparison.py's throughput (same engines, dt, controls, 1 substep x 4
 iterations). Results (steps/s, us per batched step, compile s) are written after every child.

@@ -1,0 +1,68 @@
+"""benchmarks/hlo_kernels.py: kernels per step counted from XLA's optimised HLO, by source line."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+PROGRAM = """
+import jax, jax.numpy as jnp
+def f(x, w):
+    def body(c, _):
+        c = jnp.tanh(c @ w) + jnp.sort(c, axis=-1)  # KERNELS
+        return c, None
+    return jax.lax.scan(body, x, None, length=LENGTH)[0]
+jax.block_until_ready(jax.jit(f)(jnp.ones((4, 8)), jnp.ones((8, 8))))
+"""
+
+
+@pytest.fixture(scope="module")
+def hlo_kernels():
+    spec = importlib.util.spec_from_file_location("hlo_kernels", BENCHMARKS / "hlo_kernels.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _dumped(directory: Path, length: int) -> Path:
+    """The optimised HLO of PROGRAM with a scan of `length`, compiled on CPU in a fresh process."""
+    script = directory / f"program_{length}.py"
+    script.write_text(PROGRAM.replace("LENGTH", str(length)))
+    dump = directory / f"dump_{length}"
+    environment = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_dump_to={dump}")
+    subprocess.run([sys.executable, str(script)], env=environment, check=True, timeout=300)
+    (path,) = dump.glob("*jit_f*after_optimizations.txt")
+    return path
+
+
+def test_kernels_in_a_loop_count_once_per_trip_and_name_their_source_line(hlo_kernels, tmp_path):
+    line = 1 + PROGRAM.splitlines().index("        c = jnp.tanh(c @ w) + jnp.sort(c, axis=-1)  # KERNELS")
+    counted = {}
+    for length in (3, 7):
+        result = hlo_kernels.count(_dumped(tmp_path, length), steps=1, within=f"program_{length}.py")
+        counted[length] = result["per_source_line"][f"program_{length}.py:{line} f.<locals>.body"]
+        assert result["loops_without_known_trip_count"] == []
+    # the sort and the product/tanh/add are kernels of their own, run once per trip
+    assert counted[3] >= 2 * 3
+    assert counted[7] * 3 == counted[3] * 7
+
+
+def test_the_h200_dump_counts_the_kernels_its_trace_saw(hlo_kernels):
+    """Session 46's dump of the DBD humanoid step (batch 4096, a scan of 10 steps) against the kernels
+    the profiler recorded on that GPU for the same program (kernel_trace_gpu_solvers.json)."""
+    results = BENCHMARKS / "results"
+    traced = json.loads((results / "kernel_trace_gpu_solvers.json").read_text())["models"]["humanoid"]
+    ((stream, seen),) = [(k, v) for k, v in traced["dbdjax-dbd"].items() if "GPU" in k]
+    result = hlo_kernels.count(results / "hlo" / "dbd_humanoid_4096_h200.txt.gz", steps=10, within="dbdjax/")
+    assert result["loops_without_known_trip_count"] == []
+    assert abs(result["kernels_per_step"] - seen["events_per_step"]) < 0.05 * seen["events_per_step"], stream
+    assert sum(result["per_file"].values()) == pytest.approx(result["kernels_per_step"], abs=1.0)
