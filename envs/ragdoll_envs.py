@@ -109,7 +109,10 @@ class RagdollEnv(DbdFuncEnv):
     height (m), mass (kg), drive_stiffness, drive_damping, max_torque: `ragdoll.build`'s
     (None: its defaults). push_interval: s between pushes (None: no pushes). push_speed: (low,
     high) m/s (module docstring: why 0.2-0.6). push_schedule: "regular" (one push every
-    push_interval exactly) or "random" (at that rate on average; module docstring). fall_height:
+    push_interval exactly) or "random" (at that rate on average; module docstring).
+    backward_push_share: the share of pushes whose direction is drawn within 45 degrees of
+    backwards (-x, the doll's back at build) instead of from every direction alike (0: none): the
+    pushes trained policies fall after (README, session 44), made more common for training. fall_height:
     m, the pelvis height that ends the episode (None: 0.55 x the standing height). smooth_weight:
     weight of the action-change penalty.
     dt, substeps, iterations, tree_solve: the physics (`ModelBuilder.finalize`). tree_solve=True is
@@ -134,6 +137,7 @@ class RagdollEnv(DbdFuncEnv):
         push_interval: float | None = None,
         push_speed: tuple[float, float] = (0.2, 0.6),
         push_schedule: str = "regular",
+        backward_push_share: float = 0.0,
         fall_height: float | None = None,
         smooth_weight: float = 0.1,
         dt: float = ragdoll.DT,
@@ -148,7 +152,8 @@ class RagdollEnv(DbdFuncEnv):
         base = dict(
             height=height, mass=mass, drive_stiffness=_hashable(drive_stiffness),
             drive_damping=_hashable(drive_damping), max_torque=_hashable(max_torque), push_interval=push_interval,
-            push_speed=tuple(push_speed), push_schedule=push_schedule, fall_height=fall_height,
+            push_speed=tuple(push_speed), push_schedule=push_schedule, backward_push_share=backward_push_share,
+            fall_height=fall_height,
             smooth_weight=smooth_weight, dt=dt,
             substeps=substeps, iterations=iterations, frame_skip=frame_skip, max_episode_steps=max_episode_steps,
             tree_solve=tree_solve, relaxation=relaxation,
@@ -158,6 +163,10 @@ class RagdollEnv(DbdFuncEnv):
         if push_schedule not in PUSH_SCHEDULES:
             raise ValueError(
                 f"{type(self).__name__}: push_schedule must be one of {PUSH_SCHEDULES}, got {push_schedule!r}"
+            )
+        if not 0.0 <= backward_push_share <= 1.0:
+            raise ValueError(
+                f"{type(self).__name__}: backward_push_share must be in [0, 1], got {backward_push_share!r}"
             )
         low_speed, high_speed = (float(v) for v in push_speed)
         if not 0.0 <= low_speed <= high_speed:
@@ -181,6 +190,7 @@ class RagdollEnv(DbdFuncEnv):
         self.push_interval = None if push_interval is None else float(push_interval)
         self.push_speed = (low_speed, high_speed)
         self.push_schedule = push_schedule
+        self.backward_push_share = float(backward_push_share)
         self.smooth_weight = float(smooth_weight)
         super().__init__(
             model,
@@ -245,6 +255,10 @@ class RagdollEnv(DbdFuncEnv):
         else:
             pushed = jax.random.uniform(when, (), self.dtype) < self.dt / self.push_interval
         angle = jax.random.uniform(direction, (), self.dtype, -jnp.pi, jnp.pi)
+        if self.backward_push_share > 0.0:  # without it, the same draws as before the option
+            pick, cone = jax.random.split(jax.random.fold_in(direction, 1))
+            backward = jax.random.uniform(cone, (), self.dtype, 0.75 * jnp.pi, 1.25 * jnp.pi)
+            angle = jnp.where(jax.random.uniform(pick, (), self.dtype) < self.backward_push_share, backward, angle)
         speed = jax.random.uniform(size, (), self.dtype, *self.push_speed)
         change = speed * jnp.stack([jnp.cos(angle), jnp.sin(angle), 0.0 * angle])
         return jnp.where(pushed, change, 0.0)

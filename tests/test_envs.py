@@ -451,6 +451,29 @@ def test_regular_pushes_come_every_two_seconds_from_the_start_in_every_direction
     assert counts.min() > 150 and counts.max() < 250  # every direction alike (200 a bin expected)
 
 
+def test_a_backward_push_share_draws_that_share_from_behind_and_the_rest_as_before():
+    episodes, steps = 200, 300
+    keys = jax.random.split(jax.random.PRNGKey(2), episodes * steps)
+    step = jnp.tile(jnp.arange(steps), episodes)
+    kicks = {}
+    for share in (0.0, 0.5, 1.0):
+        env = envs.RagdollStand(backward_push_share=share)
+        kicks[share] = np.asarray(quick_jit(jax.vmap(env.kick))(keys, step))
+    default = np.asarray(quick_jit(jax.vmap(envs.RagdollStand().kick))(keys, step))
+    np.testing.assert_array_equal(kicks[0.0], default)  # share 0: the registered env's pushes, bit for bit
+    pushed = np.linalg.norm(default, axis=-1) > 0
+    for share, drawn in kicks.items():
+        assert np.array_equal(np.linalg.norm(drawn, axis=-1) > 0, pushed)  # the same steps, the same speeds
+        np.testing.assert_allclose(np.linalg.norm(drawn[pushed], axis=-1), np.linalg.norm(default[pushed], axis=-1),
+                                   rtol=1e-6)  # fmt: skip
+        angle = np.arctan2(drawn[pushed][:, 1], drawn[pushed][:, 0])
+        behind = np.abs(angle) >= 0.75 * np.pi - 1e-6  # within 45 degrees of -x
+        expected = share + (1.0 - share) * 0.25  # the cone is a quarter of every direction
+        assert abs(behind.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / pushed.sum()) + 1e-9, share
+    with pytest.raises(ValueError, match="backward_push_share must be in"):
+        envs.RagdollStand(backward_push_share=1.5)
+
+
 def test_the_kick_of_a_step_lands_on_the_torso_before_the_physics(stand):
     state, _, _ = stand.reset(jax.random.PRNGKey(3))
     state = dataclasses.replace(state, step=jnp.asarray(120, state.step.dtype))  # a push step
