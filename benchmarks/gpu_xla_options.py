@@ -90,8 +90,8 @@ def child(args: argparse.Namespace) -> dict:
     programs, result = [], {"variant": args.child, "options": options, "how": how, "runs": []}
     for model_name in args.models:
         engines, skipped = brax_comparison.make_engines(brax_comparison.ASSETS / f"{model_name}.xml", args.engines)
-        for name, reason in skipped.items():
-            result["runs"].append({"model": model_name, "engine": name, "skipped": reason})
+        for engine_name, reason in skipped.items():
+            result["runs"].append({"model": model_name, "engine": engine_name, "skipped": reason})
         for engine in engines:
             for batch in args.batches:
                 entry = {"model": model_name, "engine": engine.name, "batch": batch, "chunk": chunk}

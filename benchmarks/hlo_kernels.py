@@ -4,16 +4,17 @@ On the GPU a step's time is its number of kernels (README "Side by side with Bra
 1,456 kernels per humanoid step at 1.9 us each, the GPU busy throughout). XLA writes the program it
 runs, after fusion, with `XLA_FLAGS=--xla_dump_to=DIR`; this script reads one such
 `*after_optimizations.txt` (plain or .gz) and counts its kernels per step: every fusion, custom call
-and copy, times the trip counts of the loops around it (XLA's `known_trip_count`), then groups them
-by the innermost line of the source that made each (the HLO's stack frames). It needs no GPU: a
+and copy, times the trip counts of the loops around it (XLA's `known_trip_count`; every branch of
+a conditional counted, so an upper bound where there are branches), then groups them by the
+innermost line of the source that made each (the HLO's stack frames). It needs no GPU: a
 dump made on one (`benchmarks/results/hlo/`, session 46's H200) can be read anywhere, and a CPU
 dump of the same program is read the same way (XLA:CPU fuses differently).
 
     python benchmarks/hlo_kernels.py benchmarks/results/hlo/dbd_humanoid_4096_h200.txt.gz --steps 10
 
 --steps: the physics steps in the dumped program (kernel_trace.py traces a scan of 10).
---within: count only the kernels inside the source files whose path holds this text (default
-"dbdjax/"): a kernel is attributed to its innermost frame in those files.
+--within: each kernel is attributed to its innermost frame in the source files whose path holds
+this text (default "dbdjax/"); kernels with no such frame are counted as "(outside)".
 """
 
 from __future__ import annotations
