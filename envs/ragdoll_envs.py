@@ -112,7 +112,8 @@ class RagdollEnv(DbdFuncEnv):
     push_interval exactly) or "random" (at that rate on average; module docstring).
     backward_push_share: the share of pushes whose direction is drawn within 45 degrees of
     backwards (-x, the doll's back at build) instead of from every direction alike (0: none): the
-    pushes trained policies fall after (README, session 44), made more common for training. fall_height:
+    pushes trained policies fall after (README, session 44), made more common for training (one
+    30-minute PPO run at 0.25 learned no faster per step; README, session 46). fall_height:
     m, the pelvis height that ends the episode (None: 0.55 x the standing height). smooth_weight:
     weight of the action-change penalty.
     dt, substeps, iterations, tree_solve: the physics (`ModelBuilder.finalize`). tree_solve=True is
