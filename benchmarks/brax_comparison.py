@@ -189,13 +189,23 @@ def rollout_function(engine: Engine, step: Callable | None = None):
     return lambda state, controls: jax.lax.scan(lambda s, c: (step(s, c), None), state, controls)[0]
 
 
-def throughput(engine: Engine, batch: int, seconds: float, chunk: int = 10) -> dict:
-    """Physics steps per second of `batch` copies stepped together by one jitted call of
-    `chunk` steps (so Python overhead does not count)."""
+def batched_chunk(engine: Engine, batch: int, chunk: int, compiler_options: dict | None = None):
+    """(run, state): `run(state)` steps `batch` copies of the engine's initial `state` together
+    through `chunk` steps of random controls (vmap inside a lax.scan), jitted with
+    `compiler_options` (None: COMPILER_OPTIONS). The program every timing here measures."""
     state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), engine.init())
     controls = random_controls(engine, (chunk, batch))
     batched = jax.vmap(engine.step)
-    run = jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0])
+    options = COMPILER_OPTIONS if compiler_options is None else compiler_options
+    run = jax.jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0],
+                  compiler_options=options or None)  # fmt: skip
+    return run, state
+
+
+def throughput(engine: Engine, batch: int, seconds: float, chunk: int = 10) -> dict:
+    """Physics steps per second of `batch` copies stepped together by one jitted call of
+    `chunk` steps (so Python overhead does not count)."""
+    run, state = batched_chunk(engine, batch, chunk)
     # Two untimed calls: the first compiles, and where an engine's state comes back with other
     # types than it went in (weak types), the second compiles again; timing starts after both.
     started = time.perf_counter()

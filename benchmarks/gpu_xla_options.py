@@ -95,13 +95,7 @@ def child(args: argparse.Namespace) -> dict:
         for engine in engines:
             for batch in args.batches:
                 entry = {"model": model_name, "engine": engine.name, "batch": batch, "chunk": chunk}
-                state = jax.tree.map(lambda x, b=batch: jnp.broadcast_to(x, (b,) + x.shape), engine.init())
-                controls = brax_comparison.random_controls(engine, (chunk, batch))
-                batched = jax.vmap(engine.step)
-                run = jax.jit(
-                    lambda s, c=controls, f=batched: jax.lax.scan(lambda s, u: (f(s, u), None), s, c)[0],
-                    compiler_options=compiler_options or None,
-                )
+                run, state = brax_comparison.batched_chunk(engine, batch, chunk, compiler_options)
                 started = time.perf_counter()
                 try:  # two untimed calls: the first compiles, the second settles weak types
                     state = jax.block_until_ready(run(jax.block_until_ready(run(state))))

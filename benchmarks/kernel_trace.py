@@ -25,16 +25,12 @@ from pathlib import Path
 
 import brax_comparison  # beside this script
 import jax
-import jax.numpy as jnp
 import machine
 
 
 def traced_run(engine: brax_comparison.Engine, batch: int, steps: int, directory: Path) -> None:
     """Trace one jitted call of `steps` vmapped steps of `batch` copies (compiled beforehand)."""
-    state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), engine.init())
-    controls = brax_comparison.random_controls(engine, (steps, batch))
-    batched = jax.vmap(engine.step)
-    run = brax_comparison.jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0])
+    run, state = brax_comparison.batched_chunk(engine, batch, steps)
     state = jax.block_until_ready(run(jax.block_until_ready(run(state))))  # compile, and settle weak types
     with jax.profiler.trace(str(directory), create_perfetto_trace=True):
         jax.block_until_ready(run(state))

@@ -65,4 +65,6 @@ def test_the_h200_dump_counts_the_kernels_its_trace_saw(hlo_kernels):
     result = hlo_kernels.count(results / "hlo" / "dbd_humanoid_4096_h200.txt.gz", steps=10, within="dbdjax/")
     assert result["loops_without_known_trip_count"] == []
     assert abs(result["kernels_per_step"] - seen["events_per_step"]) < 0.05 * seen["events_per_step"], stream
-    assert sum(result["per_file"].values()) == pytest.approx(result["kernels_per_step"], abs=1.0)
+    # the stack frames name a dbdjax line for all but a few kernels (the loop around the steps, the
+    # state's layout in and out)
+    assert result["per_source_line"]["(outside)"] < 0.1 * result["kernels_per_step"]
