@@ -29,6 +29,8 @@ from pathlib import Path
 KERNELS = {"fusion", "custom-call", "copy", "copy-start", "sort", "scatter", "gather", "convolution", "dot"}
 HEADER = re.compile(r"^(ENTRY )?%(\S+) \(.*\) -> .* \{$")
 INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%(\S+) = (.*?) ([a-z][a-z0-9\-]*)\((.*)$")
+# The functions of dbdjax/math.py that bind its written-out products as primitives.
+PASSED_OVER = "_written_out_primitive."
 TRIP_COUNT = re.compile(r'known_trip_count":\{"n":"(\d+)"')
 
 
@@ -38,8 +40,10 @@ def read(path: Path) -> str:
 
 
 def tables(text: str) -> tuple[dict, dict]:
-    """The HLO's stack frame table: frame id -> (location id, parent frame id), and location id ->
-    (file, function, line)."""
+    """The HLO's stack frame table: frame id -> (location id, parent frame id, 0 for none), and
+    location id -> (file, function, line). The dump prints a frame's parent_frame_id as the parent's
+    id plus one (1 where it has none): calls <module> -> f -> g, numbered 1, 2, 3, print
+    `parent_frame_id=3` on g's frame, f's id plus one."""
     sections: dict[str, dict[int, str]] = {}
     current = None
     for line in text.splitlines():
@@ -55,7 +59,7 @@ def tables(text: str) -> tuple[dict, dict]:
     field = lambda text, name: int(re.search(rf"{name}=(\d+)", text).group(1))  # noqa: E731
     locations = {k: (files[field(v, "file_name_id")], functions[field(v, "function_name_id")], field(v, "line"))
                  for k, v in sections.get("FileLocations", {}).items()}  # fmt: skip
-    frames = {k: (field(v, "file_location_id"), field(v, "parent_frame_id"))
+    frames = {k: (field(v, "file_location_id"), field(v, "parent_frame_id") - 1)
               for k, v in sections.get("StackFrames", {}).items()}  # fmt: skip
     return frames, locations
 
@@ -78,7 +82,9 @@ def computations(text: str) -> tuple[dict[str, list[tuple[str, str, str]]], str]
 
 
 def source(rest: str, frames: dict, locations: dict, within: str) -> str:
-    """The innermost frame in a file whose path holds `within`, as "path:line function"."""
+    """The innermost frame in a file whose path holds `within`, as "path:line function". The
+    frames of `math`'s primitive machinery (every written-out product binds there) are passed
+    over for the line that called the product."""
     match = re.search(r"stack_frame_id=(\d+)", rest)
     frame = int(match.group(1)) if match else 0
     seen = set()
@@ -86,7 +92,7 @@ def source(rest: str, frames: dict, locations: dict, within: str) -> str:
         seen.add(frame)
         location, parent = frames[frame]
         file, function, line = locations[location]
-        if within in file:
+        if within in file and not function.startswith(PASSED_OVER):
             return f"{file[file.index(within) :]}:{line} {function}"
         frame = parent
     return "(outside)"

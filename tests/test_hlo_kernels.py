@@ -56,6 +56,38 @@ def test_kernels_in_a_loop_count_once_per_trip_and_name_their_source_line(hlo_ke
     assert counted[7] * 3 == counted[3] * 7
 
 
+HELPER = """
+import jax.numpy as jnp
+def wave(c):
+    return jnp.sin(c) * 3.0 + jnp.cos(c)
+"""
+
+CALLER = """
+import jax, jax.numpy as jnp
+import wave_helper
+def f(x):
+    return jnp.sort(wave_helper.wave(x), axis=-1)  # CALLS THE HELPER
+jax.block_until_ready(jax.jit(f)(jnp.ones((4, 8))))
+"""
+
+
+def test_a_kernel_made_in_a_file_outside_the_selection_counts_for_the_line_that_called_it(hlo_kernels, tmp_path):
+    """The walk up the stack frames: the sine's kernel is made in wave_helper.py, called from f in
+    caller.py; with only caller.py selected it is f's line (not "(outside)")."""
+    (tmp_path / "wave_helper.py").write_text(HELPER)
+    (tmp_path / "caller.py").write_text(CALLER)
+    dump = tmp_path / "dump"
+    environment = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_dump_to={dump}", PYTHONPATH=str(tmp_path))
+    subprocess.run([sys.executable, str(tmp_path / "caller.py")], env=environment, check=True, timeout=300)
+    (path,) = dump.glob("*jit_f*after_optimizations.txt")
+    line = 1 + CALLER.splitlines().index("    return jnp.sort(wave_helper.wave(x), axis=-1)  # CALLS THE HELPER")
+    result = hlo_kernels.count(path, steps=1, within="caller.py")
+    assert "(outside)" not in result["per_source_line"], result["per_source_line"]
+    assert result["per_source_line"][f"caller.py:{line} f"] >= 2  # the helper's arithmetic and the sort
+    helper = hlo_kernels.count(path, steps=1, within="wave_helper.py")["per_source_line"]
+    assert any(where.startswith("wave_helper.py:") for where in helper), helper
+
+
 def test_the_h200_dump_counts_the_kernels_its_trace_saw(hlo_kernels):
     """Session 46's dump of the DBD humanoid step (batch 4096, a scan of 10 steps) against the kernels
     the profiler recorded on that GPU for the same program (kernel_trace_gpu_solvers.json)."""
