@@ -99,7 +99,10 @@ def by_line(directory: Path, dump: Path, steps: int, top: int, within: str = "db
     The program is the largest optimised module in `dump`; the events of other names (loops, the
     runtime's own) are left out. Returns the `top` lines by time, and the kernels found per step
     and their time (us, summed over the threads that ran them)."""
-    (path,) = sorted(dump.glob("*after_optimizations.txt"), key=lambda p: p.stat().st_size)[-1:]
+    modules = sorted(dump.glob("*after_optimizations.txt"), key=lambda p: p.stat().st_size)
+    if not modules:
+        raise FileNotFoundError(f"no optimised HLO in {dump}: compile the traced program with xla_dump_to={dump}")
+    path = modules[-1]
     text = hlo_kernels.read(path)
     frames, locations = hlo_kernels.tables(text)
     bodies, _ = hlo_kernels.computations(text)
