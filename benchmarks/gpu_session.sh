@@ -13,7 +13,9 @@
 # Every result goes to $OUT (or results-gpu/ without it), each step under its own time limit out of
 # SECONDS (default 420) so that what finished comes back. Steps, most informative first:
 #   1. kernels per step and their time (kernel_trace.py), DBD and impulse solvers and Brax
-#      positional, humanoid, batch 4096, with XLA's optimised HLO dumped for hlo_kernels.py;
+#      positional, humanoid, batch 4096, and their time per source line (--by-line: on the GPU the
+#      kernels' names not yet checked against the HLO's), with each program's optimised HLO kept
+#      for hlo_kernels.py;
 #   2. throughput and compile times of dbdjax DBD and Brax positional on the humanoid, batches 1,
 #      256, 4096, 32768 (brax_comparison.py, written to a fresh file, not merged with an earlier GPU's).
 # PYTHON (default python3) runs the scripts. Without a GPU (no nvidia-smi) nothing is installed and
@@ -37,14 +39,15 @@ started=$(date +%s)
 left() { echo $((SECONDS_FOR_ALL - ($(date +%s) - started))); }
 
 rm -rf /tmp/dump
-XLA_FLAGS="--xla_dump_to=/tmp/dump" timeout $(($(left) / 3)) $PYTHON kernel_trace.py --models humanoid \
+timeout $(($(left) / 3)) $PYTHON kernel_trace.py --models humanoid \
     --engines dbdjax-dbd dbdjax-impulse brax-positional --batch 4096 --steps 10 --top 40 \
-    --out "$OUT/kernel_trace_gpu.json" 2>&1 | grep -v -i warn
-# The largest optimised programs are the traced steps (brax's is far smaller than dbdjax's two).
-ls -S /tmp/dump/*after_optimizations.txt 2>/dev/null | head -2 | while read -r dump; do
-    gzip -c "$dump" > "$OUT/$(basename "$dump").gz"
+    --by-line --dump /tmp/dump --out "$OUT/kernel_trace_gpu.json" 2>&1 | grep -v -i warn
+# Each engine's traced program is the largest optimised module in its directory.
+for engine in /tmp/dump/*/; do
+    dump=$(ls -S "$engine"*after_optimizations.txt 2>/dev/null | head -1)
+    [ -n "$dump" ] && gzip -c "$dump" > "$OUT/$(basename "$engine")_4096.txt.gz"
 done
-$PYTHON hlo_kernels.py "$OUT"/*after_optimizations.txt.gz --steps 10 --top 20 --out "$OUT/hlo_kernels_gpu.json"
+$PYTHON hlo_kernels.py "$OUT"/*_4096.txt.gz --steps 10 --top 20 --out "$OUT/hlo_kernels_gpu.json"
 
 [ -n "$on_gpu" ] || { echo "no GPU: step 2 left out"; ls -la "$OUT"; exit 0; }
 rm -f results/brax_comparison_gpu.json

@@ -18,8 +18,8 @@ optimised HLO, each kernel of the trace is found there by name and attributed to
 line of the engine's own package (dbdjax/ or brax/) that made it (`hlo_kernels.source`), and the
 kernels' time is summed per line (`by_line`: us and kernels per step). A fused kernel carries the
 line of the operation it ends with (XLA keeps its root's metadata), so a line's time includes the
-producers fused into it. Checked on CPU, where XLA's profile names each kernel after its HLO
-instruction:
+producers fused into it. --dump DIR keeps each program's dump in DIR/MODEL-ENGINE (for
+hlo_kernels.py). Checked on CPU, where XLA's profile names each kernel after its HLO instruction:
 
     python benchmarks/kernel_trace.py --models humanoid --engines dbdjax-dbd brax-positional \\
         --batch 256 --by-line --top 40 --out benchmarks/results/kernel_trace_cpu_by_line.json
@@ -136,6 +136,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10, help="steps in the traced call")
     parser.add_argument("--top", type=int, default=15, help="names listed per process")
     parser.add_argument("--by-line", action="store_true", help="also the kernels' time per source line")
+    parser.add_argument("--dump", type=Path, help="with --by-line: keep each program's HLO dump in DIR/MODEL-ENGINE")
     parser.add_argument("--out", type=Path, help="write the summary here (JSON)")
     args = parser.parse_args()
     results = {"machine": machine.describe(), "batch": args.batch, "steps": args.steps, "models": {}}
@@ -144,7 +145,9 @@ def main() -> None:
         per_engine = results["models"].setdefault(model_name, {"skipped": skipped} if skipped else {})
         for engine in engines:
             with tempfile.TemporaryDirectory() as directory:
-                trace, dump = Path(directory) / "trace", (Path(directory) / "dump" if args.by_line else None)
+                trace, dump = Path(directory) / "trace", None
+                if args.by_line:
+                    dump = (args.dump or Path(directory)) / f"{model_name}-{engine.name}"
                 traced_run(engine, args.batch, args.steps, trace, dump)
                 per_engine[engine.name] = summarise(trace, args.steps, args.top)
                 if dump is not None:

@@ -467,14 +467,22 @@ def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
     return jnp.stack([matrix[..., i, 0] * x + matrix[..., i, 1] * y + matrix[..., i, 2] * z for i in range(3)], axis=-1)
 
 
-def inverse3(matrix: jnp.ndarray) -> jnp.ndarray:
-    """Inverse of (..., 3, 3) matrices by the adjugate: elementwise, so it fuses and batches
-    (a batched LAPACK call per body costs far more on CPU than the 3x3 arithmetic)."""
+def adjugate3(matrix: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(adjugate (..., 3, 3), determinant (...)) of (..., 3, 3) matrices: the inverse is their
+    quotient (`inverse3`). Columns are cross products of rows, the determinant the first row's
+    product with the first column, so a caller that tests the determinant before dividing
+    (`rows.definite_inverse`) computes them once."""
     c0 = cross(matrix[..., 1, :], matrix[..., 2, :])
     c1 = cross(matrix[..., 2, :], matrix[..., 0, :])
     c2 = cross(matrix[..., 0, :], matrix[..., 1, :])
-    determinant = dot(matrix[..., 0, :], c0)
-    return jnp.stack([c0, c1, c2], axis=-1) / determinant[..., None, None]
+    return jnp.stack([c0, c1, c2], axis=-1), dot(matrix[..., 0, :], c0)
+
+
+def inverse3(matrix: jnp.ndarray) -> jnp.ndarray:
+    """Inverse of (..., 3, 3) matrices by the adjugate: elementwise, so it fuses and batches
+    (a batched LAPACK call per body costs far more on CPU than the 3x3 arithmetic)."""
+    adjugate, determinant = adjugate3(matrix)
+    return adjugate / determinant[..., None, None]
 
 
 def euler_angles(

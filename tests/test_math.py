@@ -85,6 +85,31 @@ def test_inverse3_inverts():
     np.testing.assert_allclose(math.inverse3(m) @ m, jnp.broadcast_to(jnp.eye(3), (5, 3, 3)), atol=1e-5)
 
 
+def test_adjugate3_is_the_determinant_times_the_inverse():
+    m = np.random.default_rng(7).normal(size=(5, 3, 3)) + 3.0 * np.eye(3)
+    adjugate, determinant = math.adjugate3(jnp.asarray(m))
+    np.testing.assert_allclose(determinant, np.linalg.det(m), rtol=1e-5)
+    np.testing.assert_allclose(adjugate, np.linalg.det(m)[:, None, None] * np.linalg.inv(m), rtol=1e-4, atol=1e-5)
+
+
+def test_definite_inverse_is_zero_with_finite_gradients_where_nothing_can_move():
+    """A zero effective mass (two static bodies) and an inactive row: no inverse, and reverse mode
+    through the guarded division stays finite; a positive definite one: its inverse."""
+    from dbdjax.constraints import rows
+
+    a = np.random.default_rng(8).normal(size=(3, 3))
+    matrices = jnp.stack([jnp.zeros((3, 3)), jnp.asarray(a @ a.T + 0.1 * np.eye(3)), jnp.eye(3)])
+    active = jnp.array([True, True, False])
+    inverse, invertible = jax.vmap(rows.definite_inverse)(matrices, active)
+    np.testing.assert_array_equal(invertible, [False, True, False])
+    np.testing.assert_array_equal(inverse[0], 0.0)
+    np.testing.assert_array_equal(inverse[2], 0.0)
+    np.testing.assert_allclose(inverse[1] @ matrices[1], np.eye(3), atol=1e-4)
+    gradient = jax.grad(lambda m: jnp.sum(jnp.sin(jax.vmap(rows.definite_inverse)(m, active)[0])))(matrices)
+    assert np.all(np.isfinite(gradient))
+    np.testing.assert_array_equal(gradient[0], 0.0)
+
+
 def test_shortest_rotation_turns_as_the_vector_does_by_at_most_pi():
     rng = np.random.default_rng(3)
     axes = rng.normal(size=(200, 3))

@@ -564,12 +564,13 @@ def point_inverse_mass(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray) -
 
 def definite_inverse(matrix: jnp.ndarray, active: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(matrix^-1, invertible) of a (3, 3) effective inverse mass, positive definite unless neither
-    side can move: 0 and False there (or where `active` is False), with the singular matrix kept
-    out of the inverse so that gradients stay finite."""
-    determinant = math.dot(matrix[0], math.cross(matrix[1], matrix[2]))
+    side can move: 0 and False there (or where `active` is False). The adjugate and determinant
+    are computed once (`math.adjugate3`, the same arithmetic as `math.inverse3`); the adjugate is a
+    polynomial, and only the division is kept from a zero determinant, so gradients stay finite."""
+    adjugate, determinant = math.adjugate3(matrix)
     invertible = active & (determinant > 0.0)
-    eye = jnp.eye(3, dtype=matrix.dtype)
-    return jnp.where(invertible, math.inverse3(jnp.where(invertible, matrix, eye)), 0.0), invertible
+    inverse = adjugate / jnp.where(invertible, determinant, 1.0)[..., None, None]
+    return jnp.where(invertible[..., None, None], inverse, 0.0), invertible
 
 
 def point_impulse_motion(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, impulse: jnp.ndarray):
