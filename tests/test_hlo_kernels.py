@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -10,33 +9,18 @@ import sys
 from pathlib import Path
 
 import pytest
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
-PROGRAM = """
-import jax, jax.numpy as jnp
-def f(x, w):
-    def body(c, _):
-        c = jnp.tanh(c @ w) + jnp.sort(c, axis=-1)  # KERNELS
-        return c, None
-    return jax.lax.scan(body, x, None, length=LENGTH)[0]
-jax.block_until_ready(jax.jit(f)(jnp.ones((4, 8)), jnp.ones((8, 8))))
-"""
+from benchmark_scripts import BENCHMARKS, KERNELS_LINE, SCANNED_PROGRAM, load
 
 
 @pytest.fixture(scope="module")
 def hlo_kernels():
-    spec = importlib.util.spec_from_file_location("hlo_kernels", BENCHMARKS / "hlo_kernels.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load("hlo_kernels", BENCHMARKS / "hlo_kernels.py")
 
 
 def _dumped(directory: Path, length: int) -> Path:
-    """The optimised HLO of PROGRAM with a scan of `length`, compiled on CPU in a fresh process."""
+    """The optimised HLO of SCANNED_PROGRAM with a scan of `length`, compiled on CPU in a fresh process."""
     script = directory / f"program_{length}.py"
-    script.write_text(PROGRAM.replace("LENGTH", str(length)))
+    script.write_text(SCANNED_PROGRAM.replace("LENGTH", str(length)))
     dump = directory / f"dump_{length}"
     environment = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_dump_to={dump}")
     subprocess.run([sys.executable, str(script)], env=environment, check=True, timeout=300)
@@ -45,7 +29,7 @@ def _dumped(directory: Path, length: int) -> Path:
 
 
 def test_kernels_in_a_loop_count_once_per_trip_and_name_their_source_line(hlo_kernels, tmp_path):
-    line = 1 + PROGRAM.splitlines().index("        c = jnp.tanh(c @ w) + jnp.sort(c, axis=-1)  # KERNELS")
+    line = KERNELS_LINE
     counted = {}
     for length in (3, 7):
         result = hlo_kernels.count(_dumped(tmp_path, length), steps=1, within=f"program_{length}.py")

@@ -2,48 +2,22 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import jax
 import jax.numpy as jnp
 import pytest
+from benchmark_scripts import BENCHMARKS, KERNELS_LINE, SCANNED_PROGRAM, load
 
 from dbdjax import compiling
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
-PROGRAM = """
-import jax, jax.numpy as jnp
-def f(x, w):
-    def body(c, _):
-        c = jnp.tanh(c @ w) + jnp.sort(c, axis=-1)  # KERNELS
-        return c, None
-    return jax.lax.scan(body, x, None, length=5)[0]
-"""
-
-
-def _module(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
 def kernel_trace():
-    sys.path.insert(0, str(BENCHMARKS))  # its neighbours: brax_comparison, hlo_kernels, machine
-    try:
-        yield _module("kernel_trace", BENCHMARKS / "kernel_trace.py")
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    return load("kernel_trace", BENCHMARKS / "kernel_trace.py")
 
 
 def test_the_kernels_time_is_summed_on_the_line_that_made_them(kernel_trace, tmp_path):
-    (tmp_path / "traced_program.py").write_text(PROGRAM)
-    program = _module("traced_program", tmp_path / "traced_program.py")
+    (tmp_path / "traced_program.py").write_text(SCANNED_PROGRAM.replace("LENGTH", "5"))
+    program = load("traced_program", tmp_path / "traced_program.py")
     dump, trace = tmp_path / "dump", tmp_path / "trace"
     options = {**compiling.compiler_options(), "xla_dump_to": str(dump), "xla_dump_hlo_as_text": True}
     run = jax.jit(program.f, compiler_options=options)
@@ -52,7 +26,7 @@ def test_the_kernels_time_is_summed_on_the_line_that_made_them(kernel_trace, tmp
     with jax.profiler.trace(str(trace), create_perfetto_trace=True):
         jax.block_until_ready(run(x, w))
     result = kernel_trace.by_line(trace, dump, steps=1, top=10, within="traced_program.py")
-    line = 1 + PROGRAM.splitlines().index("        c = jnp.tanh(c @ w) + jnp.sort(c, axis=-1)  # KERNELS")
+    line = KERNELS_LINE
     lines = {entry["line"]: entry for entry in result["top"]}
     body = lines[f"traced_program.py:{line} f.<locals>.body"]
     # the product, the sort and the arithmetic around them: kernels of their own, once per trip of 5
