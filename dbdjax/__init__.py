@@ -14,6 +14,7 @@ from dbdjax.compiling import compiler_options, jit
 from dbdjax.mjcf import load_mjcf
 from dbdjax.model import WORLD, Model, State
 from dbdjax.pipeline import init, is_finite, rollout, step
+from dbdjax.trailing_batch import vmap
 
 __all__ = [
     "WORLD",
@@ -31,6 +32,7 @@ __all__ = [
     "rollout",
     "sharding",
     "step",
+    "vmap",
 ]
 __version__ = "0.1.0"
 

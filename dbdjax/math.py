@@ -38,6 +38,10 @@ from jax.core import ShapedArray
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
+# The written-out function of each product primitive, by the primitive's name (`trailing_batch`
+# evaluates them in place).
+WRITTEN_OUT: dict[str, Callable] = {}
+
 # Below this squared length a vector is treated as zero (its direction is undefined).
 _TINY_SQUARED = 1e-24
 
@@ -110,6 +114,7 @@ def _written_out_primitive(
 
     def decorate(written_out: Callable) -> Callable:
         primitive = Primitive(name)
+        WRITTEN_OUT[name] = written_out
         mlir.register_lowering(primitive, mlir.lower_fun(written_out, multiple_results=False))
 
         def abstract(*avals):
