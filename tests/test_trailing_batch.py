@@ -99,6 +99,18 @@ def test_every_rule_gives_jax_vmaps_values():
         np.testing.assert_allclose(got[key], expected[key], rtol=1e-5, atol=1e-5, err_msg=key)
 
 
+def test_a_batch_in_tiles_with_a_filled_up_last_tile_gives_jax_vmaps_values():
+    rng = np.random.default_rng(3)
+    x = jnp.asarray(rng.normal(size=(7, 4, 3)), jnp.float32)
+    index = jnp.asarray(rng.integers(0, 4, size=7))
+    flag = jnp.asarray(rng.uniform(size=7) < 0.5)
+    expected = jax.vmap(_every_rule)(x, index, flag)
+    got = jax.jit(dbd.vmap(_every_rule, tile=3))(x, index, flag)  # tiles of 3, 3 and 1 (+ 2 copies)
+    for key in expected:
+        assert got[key].shape == expected[key].shape, key
+        np.testing.assert_allclose(got[key], expected[key], rtol=1e-5, atol=1e-5, err_msg=key)
+
+
 def test_trailing_maps_over_the_last_axis_and_returns_it_last():
     x = jnp.arange(24.0).reshape(4, 3, 2)  # two scenes of (4, 3), batch last
     out = trailing_batch.trailing(lambda a, s: jnp.sum(a[1:], axis=0) * s, in_axes=(-1, None))(x, 2.0)
@@ -109,5 +121,7 @@ def test_trailing_maps_over_the_last_axis_and_returns_it_last():
 def test_batches_of_different_sizes_and_a_wrong_number_of_in_axes_are_refused():
     with pytest.raises(ValueError, match="differ in size"):
         trailing_batch.trailing(lambda a, b: a + b)(jnp.zeros((3, 2)), jnp.zeros((3, 4)))
+    with pytest.raises(ValueError, match="first axes differ in size"):
+        dbd.vmap(lambda a, b: a + b)(jnp.zeros(3), jnp.zeros(4))
     with pytest.raises(ValueError, match="in_axes has 2 entries for 1 positional arguments"):
         dbd.vmap(lambda a: a, in_axes=(0, None))(jnp.zeros(3))
