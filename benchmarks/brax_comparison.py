@@ -60,6 +60,7 @@ class Engine:
     energy: Callable[[Any], jnp.ndarray]  # state -> kinetic + potential energy (J)
     height: Callable[[Any], jnp.ndarray]  # state -> summed body heights (a differentiable scalar)
     step_remat: Callable[[Any, jnp.ndarray], Any] | None = None  # step rematerialised for reverse mode
+    vmap: Callable = jax.vmap  # how a batch of steps is mapped (dbdjax-dbd-trailing: dbd.vmap)
 
 
 # ------------------------------------------------------------------------------------------- dbdjax
@@ -71,14 +72,15 @@ DBDJAX_VARIANTS = {
     "dbd-tree": {"tree_solve": True},
     "dbd-tree-1": {"tree_solve": True, "iterations": 1},  # one sweep, then the direct solves
     "jacobi-tree": {"jacobi": True, "tree_solve": True},
+    "dbd-trailing": {},  # DBD batched by dbd.vmap (the batch the trailing axis) instead of jax.vmap
 }
 
 
 def dbdjax_engine(xml: Path, solver: str) -> Engine:
     """solver: a key of DBDJAX_VARIANTS: "dbd", "impulse", "dbd-tree" (DBD with `tree_solve`: the
     direct solves of the joint tree, solvers/tree.py), "dbd-tree-1" (the same with one sweep instead
-    of DBD_ITERATIONS) or "jacobi-tree" (with Jacobi sweeps in place of the coloured Gauss-Seidel
-    ones)."""
+    of DBD_ITERATIONS), "jacobi-tree" (with Jacobi sweeps in place of the coloured Gauss-Seidel
+    ones) or "dbd-trailing" (DBD, a batch mapped by `dbd.vmap` instead of `jax.vmap`)."""
     if solver not in DBDJAX_VARIANTS:
         raise ValueError(f"unknown dbdjax engine {solver!r}: one of {sorted(DBDJAX_VARIANTS)}")
     kwargs = {"substeps": 1, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]}
@@ -96,6 +98,7 @@ def dbdjax_engine(xml: Path, solver: str) -> Engine:
         joint_gap=lambda state: jnp.max(dbd.diagnostics.joint_gaps(model, state)),
         energy=lambda state: dbd.diagnostics.energy(model, state),
         height=lambda state: jnp.sum(state.pos[:, 2]),
+        vmap=dbd.vmap if solver == "dbd-trailing" else jax.vmap,
     )
 
 
@@ -191,11 +194,11 @@ def rollout_function(engine: Engine, step: Callable | None = None):
 
 def batched_chunk(engine: Engine, batch: int, chunk: int, compiler_options: dict | None = None):
     """(run, state): `run(state)` steps `batch` copies of the engine's initial `state` together
-    through `chunk` steps of random controls (vmap inside a lax.scan), jitted with
+    through `chunk` steps of random controls (`engine.vmap` inside a lax.scan), jitted with
     `compiler_options` (None: COMPILER_OPTIONS). The program every timing here measures."""
     state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), engine.init())
     controls = random_controls(engine, (chunk, batch))
-    batched = jax.vmap(engine.step)
+    batched = engine.vmap(engine.step)
     options = COMPILER_OPTIONS if compiler_options is None else compiler_options
     run = jax.jit(lambda s: jax.lax.scan(lambda s, c: (batched(s, c), None), s, controls)[0],
                   compiler_options=options or None)  # fmt: skip

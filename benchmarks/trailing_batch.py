@@ -8,7 +8,8 @@ Each (model, batch) compiles both programs (a jitted lax.scan of `--chunk` steps
 controls, compiled with `dbd.compiler_options()`), checks they agree, then times them in
 alternating calls, `--rounds` of each: recorded are the least time of each (ms per batched step,
 wall clock), the median of the rounds' ratios (jax.vmap / dbd.vmap: above 1, dbd.vmap is faster)
-and the first call of each (compile + one run). Models: Brax's humanoid.xml and ant.xml
+and the first call of each (compile + one run). `--tile N`: dbd.vmap's tile (0: the whole batch
+as one tile). Models: Brax's humanoid.xml and ant.xml
 (tests/assets) at 1 substep x 4 iterations as benchmarks/brax_comparison.py runs them, and the
 ragdoll of RagdollStand-v0 (4 substeps x 8 iterations, pose targets). Writes
 benchmarks/results/trailing_batch_cpu.json (or --out).
@@ -17,6 +18,7 @@ benchmarks/results/trailing_batch_cpu.json (or --out).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import statistics
 import sys
@@ -29,6 +31,7 @@ import machine  # benchmarks/machine.py, beside this script
 import numpy as np
 
 import dbdjax as dbd
+from dbdjax import trailing_batch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # envs/ (the ragdoll's env)
@@ -57,11 +60,12 @@ def chunked(mapping, model, controls):
     return dbd.jit(lambda state: jax.lax.scan(lambda s, c: (step(model, s, c), None), state, controls)[0])
 
 
-def measure(name: str, batch: int, chunk: int, rounds: int) -> dict:
+def measure(name: str, batch: int, chunk: int, rounds: int, tile: int | None = trailing_batch.TILE) -> dict:
     model, controls = model_and_controls(name, batch, chunk)
     state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), dbd.init(model))
     runs, first_call, finals = {}, {}, {}
-    for label, mapping in (("jax.vmap", jax.vmap), ("dbd.vmap", dbd.vmap)):
+    tiled = functools.partial(dbd.vmap, tile=tile)
+    for label, mapping in (("jax.vmap", jax.vmap), ("dbd.vmap", tiled)):
         run = chunked(mapping, model, controls)
         started = time.perf_counter()
         finals[label] = jax.block_until_ready(run(state))
@@ -80,6 +84,7 @@ def measure(name: str, batch: int, chunk: int, rounds: int) -> dict:
     result = {
         "model": name,
         "batch": batch,
+        "tile": tile,
         "ms_per_batched_step": {label: round(1e3 * min(t), 3) for label, t in times.items()},
         "steps_per_s": {label: round(batch / min(t), 1) for label, t in times.items()},
         "median_ratio": round(statistics.median(ratios), 3),
@@ -100,12 +105,13 @@ def main() -> None:
     parser.add_argument("--batches", nargs="+", type=int, default=[16, 64, 256])
     parser.add_argument("--chunk", type=int, default=10, help="steps per timed call")
     parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--tile", type=int, default=trailing_batch.TILE, help="dbd.vmap's tile (0: one tile)")
     parser.add_argument("--out", type=Path, default=RESULTS / "trailing_batch_cpu.json")
     args = parser.parse_args()
     results = {"machine": machine.describe(), "command": " ".join(sys.argv), "results": []}
     for name in args.models:
         for batch in args.batches:
-            results["results"].append(measure(name, batch, args.chunk, args.rounds))
+            results["results"].append(measure(name, batch, args.chunk, args.rounds, args.tile or None))
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(json.dumps(results, indent=1) + "\n")
 

@@ -433,3 +433,23 @@ def test_keep_best_chooses_on_validation_episodes_and_reports_on_the_others(monk
     result = train(keep_best=False)
     assert seeds_used == [8] * 4 and int(result.params["w"]) == 4 and result.summary["best_iteration"] == 4
     assert result.evaluation["mean_return"] == -2.0 and result.history[-1]["eval_mean_return"] == -2.0
+
+
+def test_envs_stepped_under_dbd_vmap_train_as_under_jax_vmap(monkeypatch):
+    """PPOConfig.trailing_batch: the same seed trains through the same iterations (same losses and
+    returns up to float32 rounding) with the envs under dbd.vmap as under jax.vmap."""
+    task = IKChainReach(max_episode_steps=10)
+    mapped = []
+    original = ppo.trailing.vmap
+    monkeypatch.setattr(ppo.trailing, "vmap", lambda f, *a, **k: mapped.append(f) or original(f, *a, **k))
+    histories = []
+    for trailing in (False, True):
+        config = ppo.PPOConfig(num_envs=4, unroll_length=4, num_minibatches=1, update_epochs=1, hidden=(8,),
+                               learning_rate=1e-3, trailing_batch=trailing)  # fmt: skip
+        histories.append(ppo.train(task, config, total_steps=48, eval_episodes=2, progress=False).history)
+    for key in ("episode_return", "reward_per_step", "policy_loss", "value_loss", "grad_norm"):
+        expected = [row[key] for row in histories[0]]
+        got = [row[key] for row in histories[1]]
+        np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6, err_msg=key)
+    assert max(abs(row["grad_norm"]) for row in histories[1]) > 0.0
+    assert [f.__name__ for f in mapped] == ["step", "reset"]  # only the trailing-batch run, its envs
