@@ -15,11 +15,11 @@ concatenate, gather with per-scene indices, ...) get the axis appended to their 
 and calls are evaluated inside. A primitive without such a rule takes JAX's own batching rule
 between two transposes (`_by_jax_vmap`), so any program gives vmap's result.
 
-Derivatives are jax.vmap's: `vmap` is a `jax.custom_vjp` whose forward pass is the trailing-batch
-program and whose backward pass is the VJP of `jax.vmap(function)` (the custom derivative rules
-inside the function, which keep its gradients finite, are not carried into the trailing-batch
-program; reverse mode through it would lose them). Forward-mode differentiation (`jax.jvp`,
-`jax.jacfwd`) of `vmap` is not available: use `jax.vmap` there.
+Derivatives are jax.vmap's. The trailing-batch program inlines the function's custom derivative
+rules (those that keep a step's gradients finite), so it is never differentiated itself: `vmap` is
+a `jax.custom_vjp` whose forward pass is that program and whose backward pass is the VJP of
+`jax.vmap(function)`, the rules applied (it computes the forward pass again, batch-first).
+Forward-mode differentiation (`jax.jvp`, `jax.jacfwd`) of `vmap` is not available: use `jax.vmap`.
 """
 
 from __future__ import annotations
@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.extend import core
+
+from dbdjax import math
 
 # Primitives that act element by element on operands of one shape (a scalar operand broadcasts).
 ELEMENTWISE = frozenset({
@@ -45,8 +47,8 @@ ALONG_AXES = frozenset({
     "argmax", "argmin", "cumlogsumexp", "cummax", "cummin", "cumprod", "cumsum", "reduce_and", "reduce_max",
     "reduce_min", "reduce_or", "reduce_prod", "reduce_sum", "squeeze",
 })  # fmt: skip
-# Scenes per tile of `vmap` (benchmarks/trailing_batch.py: at batch 256 one tile of 256 ran no faster
-# than jax.vmap, tiles of 32 or 64 1.3-1.5x faster on the humanoid and the ragdoll).
+# Scenes per tile of `vmap` (benchmarks/trailing_batch.py at batch 256: one tile of 256 no faster than
+# jax.vmap, tiles of 64 1.25-1.33x faster on the humanoid and the ragdoll; README "Batches").
 TILE = 64
 # dot_general with at most this many products per output entry is written out as products and sums.
 SMALL_DOT_TERMS = 8
@@ -64,6 +66,7 @@ def vmap(function: Callable, in_axes: int | None | Sequence[int | None] = 0, til
     states and controls under one model. Every output is batched along its first axis.
     tile: a batch larger than this runs as tiles of `tile` scenes, each tile batch-last and the
     tiles mapped by jax.vmap (the last tile filled up with copies of the last scene); None: one tile.
+    Reverse mode gives jax.vmap's gradients (module docstring); forward mode is not available.
     """
 
     def batched(*args):
@@ -87,12 +90,13 @@ def vmap(function: Callable, in_axes: int | None | Sequence[int | None] = 0, til
         def join(x):  # (tiles, ..., width) -> (size, ...)
             return jnp.moveaxis(x, -1, 1).reshape((tiles * width,) + x.shape[1:-1])[:size]
 
+        one_tile = trailing(function, [-1 if axis == 0 else None for axis in axes])
         if tiles == 1:
             mapped = [jax.tree.map(lambda x: jnp.moveaxis(x, 0, -1), a) if axis == 0 else a
                       for a, axis in zip(args, axes, strict=True)]  # fmt: skip
-            return jax.tree.map(lambda x: jnp.moveaxis(x, -1, 0), trailing(function, axes)(*mapped))
+            return jax.tree.map(lambda x: jnp.moveaxis(x, -1, 0), one_tile(*mapped))
         mapped = [jax.tree.map(split, a) if axis == 0 else a for a, axis in zip(args, axes, strict=True)]
-        per_tile = jax.vmap(trailing(function, axes), in_axes=tuple(0 if axis == 0 else None for axis in axes))
+        per_tile = jax.vmap(one_tile, in_axes=tuple(0 if axis == 0 else None for axis in axes))
         return jax.tree.map(join, per_tile(*mapped))
 
     def by_jax(*args):
@@ -116,8 +120,9 @@ def vmap(function: Callable, in_axes: int | None | Sequence[int | None] = 0, til
 def trailing(function: Callable, in_axes: int | None | Sequence[int | None] = -1) -> Callable:
     """`function` mapped over the LAST axis of its batched arguments (in_axes -1, or None for an
     unbatched one, per positional argument), every output batched along its last axis: for
-    callers that keep their arrays batch-last between calls (no transposes). Forward values only
-    (module docstring)."""
+    callers that keep their arrays batch-last between calls (no transposes). Forward values: its
+    program does not apply the function's custom derivative rules (module docstring), so take
+    gradients through `vmap`."""
 
     def batched(*args):
         axes = _axes_per_argument(in_axes, len(args))
@@ -263,9 +268,7 @@ def _rule(equation, values: list, size: int) -> list:
         return [(out[0], True)]
     if name == "dot_general" and _is_small_dot(equation):
         return [(_small_dot(values, params["dimension_numbers"], shape, size), True)]
-    if name.startswith("dbdjax_"):  # math's written-out products: their components, in place
-        from dbdjax import math
-
+    if name in math.WRITTEN_OUT:  # math's written-out products: their components, in place
         written_out = math.WRITTEN_OUT[name]
         per_scene = [jax.ShapeDtypeStruct(v.aval.shape, v.aval.dtype) for v in equation.invars]
         return _evaluate(*_program(jax.make_jaxpr(written_out)(*per_scene)), values, size)
