@@ -45,10 +45,9 @@ def model_and_controls(name: str, batch: int, chunk: int, seed: int = 0):
         from envs.ragdoll_envs import RagdollStand
 
         model = RagdollStand().model
-        low, high = np.asarray(model.control_range).T
     else:
         model = dbd.load_mjcf(ASSETS / f"{name}.xml", substeps=1, iterations=4)
-        low, high = np.asarray(model.control_range).T
+    low, high = np.asarray(model.control_range).T
     rng = np.random.default_rng(seed)
     controls = low + rng.uniform(size=(chunk, batch, len(low))) * (high - low)
     return model, jnp.asarray(controls, jnp.float32)
