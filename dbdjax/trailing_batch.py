@@ -131,7 +131,9 @@ def trailing(function: Callable, in_axes: int | None | Sequence[int | None] = -1
             for leaf in jax.tree.leaves(argument):
                 leaves.append(jnp.asarray(leaf))
                 flags.append(axis is not None)
-        sizes = {x.shape[-1] for x, batched in zip(leaves, flags, strict=True) if batched and x.ndim}
+        if any(batched and x.ndim == 0 for x, batched in zip(leaves, flags, strict=True)):
+            raise ValueError("trailing batch: a batched argument holds a scalar (no axis to map)")
+        sizes = {x.shape[-1] for x, batched in zip(leaves, flags, strict=True) if batched}
         if len(sizes) != 1:
             raise ValueError(f"trailing batch: the batched arguments' last axes differ in size: {sorted(sizes)}")
         size = sizes.pop()
@@ -293,11 +295,8 @@ def _small_dot(values: list, numbers, shape: tuple, size: int) -> jnp.ndarray:
     for (x, batched), contract, batch in ((values[0], contract_l, batch_l), (values[1], contract_r, batch_r)):
         x = _with_batch((x, batched), size)
         free = [d for d in range(x.ndim - 1) if d not in contract and d not in batch]
-        order = list(batch) + free + list(contract) + [x.ndim - 1]
-        x = jnp.transpose(x, order)
-        operands.append(
-            (x, len(free), int(np.prod([x.shape[len(batch) + len(free) + k] for k in range(len(contract))])))
-        )
+        terms = int(np.prod([x.shape[d] for d in contract]))
+        operands.append((jnp.transpose(x, list(batch) + free + list(contract) + [x.ndim - 1]), len(free), terms))
     (lhs, free_l, terms), (rhs, free_r, _) = operands
     nb = len(batch_l)
     # lhs (batch, free_l, contracted, S) and rhs (batch, free_r, contracted, S), each contracted group flattened
@@ -305,11 +304,7 @@ def _small_dot(values: list, numbers, shape: tuple, size: int) -> jnp.ndarray:
     rhs = rhs.reshape(rhs.shape[: nb + free_r] + (terms, size))
     lhs = lhs.reshape(lhs.shape[: nb + free_l] + (1,) * free_r + (terms, size))
     rhs = rhs.reshape(rhs.shape[:nb] + (1,) * free_l + rhs.shape[nb:])
-    products = lhs * rhs
-    total = products[..., 0, :]
-    for k in range(1, terms):
-        total = total + products[..., k, :]
-    return total.reshape(shape + (size,))
+    return math.sum_small(lhs * rhs, axis=-2).reshape(shape + (size,))
 
 
 def _by_jax_vmap(equation, values: list) -> list:

@@ -123,5 +123,9 @@ def test_batches_of_different_sizes_and_a_wrong_number_of_in_axes_are_refused():
         trailing_batch.trailing(lambda a, b: a + b)(jnp.zeros((3, 2)), jnp.zeros((3, 4)))
     with pytest.raises(ValueError, match="first axes differ in size"):
         dbd.vmap(lambda a, b: a + b)(jnp.zeros(3), jnp.zeros(4))
+    with pytest.raises(ValueError, match="holds a scalar"):
+        trailing_batch.trailing(lambda a, b: a + b)(jnp.zeros(3), jnp.float32(1.0))
+    with pytest.raises(ValueError, match="holds a scalar"):
+        dbd.vmap(lambda a, b: a + b)(jnp.zeros(3), jnp.float32(1.0))
     with pytest.raises(ValueError, match="in_axes has 2 entries for 1 positional arguments"):
         dbd.vmap(lambda a: a, in_axes=(0, None))(jnp.zeros(3))

@@ -440,8 +440,8 @@ def test_envs_stepped_under_dbd_vmap_train_as_under_jax_vmap(monkeypatch):
     returns up to float32 rounding) with the envs under dbd.vmap as under jax.vmap."""
     task = IKChainReach(max_episode_steps=10)
     mapped = []
-    original = ppo.trailing.vmap
-    monkeypatch.setattr(ppo.trailing, "vmap", lambda f, *a, **k: mapped.append(f) or original(f, *a, **k))
+    original = ppo.trailing_batch.vmap
+    monkeypatch.setattr(ppo.trailing_batch, "vmap", lambda f, *a, **k: mapped.append(f) or original(f, *a, **k))
     histories = []
     for trailing in (False, True):
         config = ppo.PPOConfig(num_envs=4, unroll_length=4, num_minibatches=1, update_epochs=1, hidden=(8,),

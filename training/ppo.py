@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dbdjax import trailing_batch as trailing
+from dbdjax import trailing_batch
 from dbdjax.compiling import jit
 from dbdjax.envs.core import DbdFuncEnv
 
@@ -339,7 +339,7 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
     """The jitted training iteration: TrainState -> (TrainState, metrics dict of scalars)."""
     if config.batch_size % config.num_minibatches:
         raise ValueError(f"num_envs x unroll_length ({config.batch_size}) must divide into {config.num_minibatches}")
-    mapping = trailing.vmap if config.trailing_batch else jax.vmap
+    mapping = trailing_batch.vmap if config.trailing_batch else jax.vmap
     step_envs = mapping(task.step)
     reset_envs = mapping(task.reset)
     explored = explored_mask(task, config)
