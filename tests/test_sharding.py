@@ -86,7 +86,7 @@ TRAINERS = textwrap.dedent(
         devices = rl.env_devices(config.num_envs, jax.devices()[:count])
         state = rl.distribute(ppo.init_state(task, config, optimiser, 0), ppo.BATCH_FIELDS, devices)
         for _ in range(3):
-            state, metrics = iteration(state)
+            state, metrics = iteration(state, np.float32(0.0))
         finals[count] = state
     print("split", len(finals[2].obs.sharding.device_set), len(finals[2].env_state.physics.pos.sharding.device_set))
     difference = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))

@@ -376,7 +376,7 @@ def test_every_evaluation_runs_the_eval_task_when_one_is_given(monkeypatch):
 
     def train(eval_task, keep_best=True):
         return rl.run(
-            "test", trained, lambda state: (state + 1, {"loss": 0.0}), 0, lambda state: {"w": np.array(state)},
+            "test", trained, lambda state, done: (state + 1, {"loss": 0.0}), 0, lambda state: {"w": np.array(state)},
             rl.Clock(), steps_per_iteration=4, iterations=2, time_budget_s=None, seed=7, eval_every=1,
             eval_episodes=3, evaluate_initial=True, progress=False, bar_metric="loss", line=str, keep_best=keep_best,
             eval_task=eval_task,
@@ -414,7 +414,7 @@ def test_keep_best_chooses_on_validation_episodes_and_reports_on_the_others(monk
     def train(keep_best):
         seeds_used.clear()
         return rl.run(
-            "test", task, lambda state: (state + 1, {"loss": 0.0}), 0, lambda state: {"w": np.array(state)},
+            "test", task, lambda state, done: (state + 1, {"loss": 0.0}), 0, lambda state: {"w": np.array(state)},
             rl.Clock(), steps_per_iteration=4, iterations=4, time_budget_s=None, seed=7, eval_every=1,
             eval_episodes=3, evaluate_initial=False, progress=False, bar_metric="loss", line=str, keep_best=keep_best,
         )  # fmt: skip
@@ -425,6 +425,7 @@ def test_keep_best_chooses_on_validation_episodes_and_reports_on_the_others(monk
     assert int(result.params["w"]) == 2 and result.summary["best_iteration"] == 2
     assert result.evaluation["mean_return"] == -5.0 and result.summary["last_evaluation"]["mean_return"] == -2.0
     assert [row["eval_mean_return"] for row in result.history] == [1.0, 5.0, 3.0, 2.0]
+    assert [row["fraction_done"] for row in result.history] == [0.0, 0.25, 0.5, 0.75]  # before each iteration
     assert result.summary["validation_seed"] == validation_seed and result.summary["evaluation_seed"] == 8
     rl.figure_history(result.history, result.summary)  # draws the kept policy's report
 
@@ -453,3 +454,72 @@ def test_envs_stepped_under_dbd_vmap_train_as_under_jax_vmap(monkeypatch):
         np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6, err_msg=key)
     assert max(abs(row["grad_norm"]) for row in histories[1]) > 0.0
     assert [f.__name__ for f in mapped] == ["step", "reset"]  # only the trailing-batch run, its envs
+
+
+def test_the_kept_policy_is_the_moving_average_of_the_trained_ones_and_the_training_is_unchanged():
+    """PPOConfig.policy_average: the exported policy is average <- d average + (1 - d) policy after
+    every iteration, each statistics update absorbed into it as into the networks; the trained
+    policy, and so the rollouts, are the same as without it; at d = 0 the trained policy is exported."""
+    task = IKChainReach(max_episode_steps=10)
+    runs = {}
+    for weight in (0.0, 0.75):
+        config = ppo.PPOConfig(num_envs=4, unroll_length=4, num_minibatches=1, update_epochs=1, hidden=(8,),
+                               learning_rate=1e-3, desired_kl=None, policy_average=weight)  # fmt: skip
+        optimiser = ppo.make_optimiser(config, None)
+        iteration = ppo.make_iteration(task, config, optimiser)
+        states = [ppo.init_state(task, config, optimiser, seed=0)]
+        for _ in range(4):
+            states.append(iteration(states[-1], np.float32(0.5))[0])
+        runs[weight] = states
+    for plain, averaged in zip(runs[0.0], runs[0.75], strict=True):
+        jax.tree.map(np.testing.assert_array_equal, plain.params, averaged.params)
+    np.testing.assert_array_equal(ppo.export_params(runs[0.0][-1])["policy"][-1]["w"],
+                                  np.asarray(runs[0.0][-1].params["policy"][-1]["w"]))  # fmt: skip
+
+    states = runs[0.75]
+    expected = states[0].params["policy"]
+    for before, after in zip(states[:-1], states[1:], strict=True):
+        expected = rl.absorb_normaliser_update(expected, before.stats, after.stats)
+        expected = jax.tree.map(lambda old, new: 0.75 * old + 0.25 * new, expected, after.params["policy"])
+    exported = ppo.export_params(states[-1])["policy"]
+    jax.tree.map(lambda got, want: np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7), exported, expected)
+    trained_last = np.asarray(states[-1].params["policy"][-1]["w"])
+    assert np.abs(trained_last).max() > 0.0  # the policy moved, and the average lags it
+    assert np.abs(exported[-1]["w"] - trained_last).max() > 1e-3 * np.abs(trained_last).max()
+
+    with pytest.raises(ValueError, match="policy_average"):
+        ppo.train(task, ppo.PPOConfig(num_envs=4, unroll_length=4, policy_average=1.0), total_steps=16)
+
+
+@pytest.mark.parametrize("desired_kl", [None, 0.01])
+def test_an_annealed_update_is_the_plain_one_scaled_and_the_kl_rule_does_not_undo_it(desired_kl):
+    """PPOConfig.final_step_scale s: at a fraction f of the run every update is (1 - (1 - s) f) times
+    the unannealed one; with the KL-adaptive rate the rule takes the same decisions as without
+    annealing (it judges policy_kl / scale^2), so the rate the steps are taken at is the scale times
+    the unannealed one."""
+    task = IKChainReach(max_episode_steps=10)
+    # One Adam step an iteration without the rule (a second one's gradient is taken where the first,
+    # scaled, step left the policy); four with it (the rule acts on the KL of the steps before).
+    steps = 1 if desired_kl is None else 2
+    moved = {}
+    for final in (1.0, 0.2):
+        config = ppo.PPOConfig(num_envs=4, unroll_length=4, num_minibatches=steps, update_epochs=steps, hidden=(8,),
+                               learning_rate=1e-3, desired_kl=desired_kl, final_step_scale=final)  # fmt: skip
+        optimiser = ppo.make_optimiser(config, None)
+        iteration = ppo.make_iteration(task, config, optimiser)
+        state = ppo.init_state(task, config, optimiser, seed=0)
+        state, _ = iteration(state, np.float32(0.0))  # the statistics settle; at f = 0 no annealing
+        after, metrics = iteration(state, np.float32(0.5))
+        moved[final] = (jax.tree.map(lambda new, old: np.asarray(new - old), after.params, state.params), metrics)
+    scale = 1.0 - 0.8 * 0.5
+    assert float(moved[0.2][1]["step_scale"]) == pytest.approx(scale) and float(moved[1.0][1]["step_scale"]) == 1.0
+    if desired_kl is None:  # Adam's step does not depend on the scale: the move is exactly scaled
+        jax.tree.map(lambda got, plain: np.testing.assert_allclose(got, scale * plain, rtol=1e-4, atol=1e-9),
+                     moved[0.2][0], moved[1.0][0])  # fmt: skip
+    else:
+        rates = [float(moved[final][1]["learning_rate"]) for final in (1.0, 0.2)]
+        assert rates[1] == pytest.approx(scale * rates[0], rel=1e-5)
+    largest = max(float(np.abs(x).max()) for x in jax.tree.leaves(moved[1.0][0]))
+    assert largest > 0.0
+    with pytest.raises(ValueError, match="final_step_scale"):
+        ppo.train(task, ppo.PPOConfig(num_envs=4, unroll_length=4, final_step_scale=0.0), total_steps=16)

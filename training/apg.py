@@ -132,7 +132,8 @@ def make_update(task: DbdFuncEnv, config: APGConfig, optimiser: optax.GradientTr
         return -jnp.mean(rewards), (carry, observations, ended)
 
     @jit
-    def update(state: TrainState):
+    def update(state: TrainState, fraction_done: jnp.ndarray):
+        del fraction_done  # how far the run is (`rl.run`): APG's steps do not anneal
         key, unroll_key = jax.random.split(state.key)
         keys = jax.random.split(unroll_key, config.horizon)
         (loss, (carry, observations, ended)), grads = jax.value_and_grad(loss_function, has_aux=True)(

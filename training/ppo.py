@@ -132,6 +132,17 @@ class PPOConfig:
     trailing_batch: step and reset the envs under `dbd.vmap` (the batch the trailing axis of every
     intermediate: the same values up to rounding, faster on XLA:CPU for the ragdoll's physics,
     README "dbd.vmap") instead of `jax.vmap`.
+    policy_average: d in [0, 1), the policy that is evaluated and exported is an exponential moving
+    average of the trained one's weights, average <- d average + (1 - d) policy after every
+    iteration (a memory of about 1 / (1 - d) iterations; Polyak averaging of the iterates); the
+    training itself does not change (the rollouts act the trained policy). The average absorbs the
+    statistics' updates as the networks do. 0: the trained policy itself.
+    final_step_scale: s in (0, 1], every update of both networks (and the log std) is scaled by a
+    factor falling linearly from 1 at the start of the run to s at its end (the run's fraction done
+    by steps or by wall time, whichever budget is nearer its end: `rl.run`), as CleanRL anneals its
+    learning rate; with the KL-adaptive rate the rule judges the KL the unscaled steps would have
+    made (policy_kl / scale^2), so the rule does not raise the rate to undo the annealing (its
+    bounds and target scale with it). 1: no annealing.
     """
 
     num_envs: int = 32
@@ -156,6 +167,8 @@ class PPOConfig:
     step_scale_of: tuple[tuple[int, float], ...] = ()
     absorb_normaliser_updates: bool = True
     trailing_batch: bool = False
+    policy_average: float = 0.0
+    final_step_scale: float = 1.0
 
     @property
     def batch_size(self) -> int:
@@ -178,6 +191,7 @@ class TrainState(NamedTuple):
     previous_obs: jnp.ndarray  # (num_envs, obs_size) the observation the last action was taken in
     previous_action: jnp.ndarray  # (num_envs, A) the last action
     continuing: jnp.ndarray  # (num_envs,) bool: the last action belongs to the running episode
+    average_policy: list  # the policy MLP evaluated and exported (`PPOConfig.policy_average`)
 
 
 # The TrainState fields with one row per env: split over the devices (`rl.distribute`).
@@ -336,7 +350,8 @@ def step_distribution_mean(task: DbdFuncEnv, config: PPOConfig, params: dict, st
 
 
 def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTransformation):
-    """The jitted training iteration: TrainState -> (TrainState, metrics dict of scalars)."""
+    """The jitted training iteration: (TrainState, fraction of the run done, a float32 scalar in
+    [0, 1]) -> (TrainState, metrics dict of scalars)."""
     if config.batch_size % config.num_minibatches:
         raise ValueError(f"num_envs x unroll_length ({config.batch_size}) must divide into {config.num_minibatches}")
     mapping = trailing_batch.vmap if config.trailing_batch else jax.vmap
@@ -441,26 +456,30 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
                        "policy_kl": policy_kl}  # fmt: skip
 
     def update_minibatch(carry, minibatch):
-        params, opt_state, stats = carry
+        params, opt_state, stats, step_scale = carry
         batch, advantage, target = minibatch
         grads, info = jax.grad(loss_function, has_aux=True)(params, stats, batch, advantage, target)
         if config.desired_kl is not None:
-            opt_state = _adapt_learning_rate(opt_state, info["policy_kl"], config.desired_kl)
-            info["learning_rate"] = opt_state[1].hyperparams["learning_rate"]
+            # The rule judges the KL the unscaled steps would have made (a KL grows as the square of
+            # a small step), so the annealing is not undone by the rule raising the rate.
+            opt_state = _adapt_learning_rate(opt_state, info["policy_kl"] / step_scale**2, config.desired_kl)
+            info["learning_rate"] = step_scale * opt_state[1].hyperparams["learning_rate"]
         updates, opt_state = optimiser.update(grads, opt_state, params)
-        params = optax.apply_updates(params, updates)
+        params = optax.apply_updates(params, jax.tree.map(lambda update: step_scale * update, updates))
         info["grad_norm"] = optax.global_norm(grads)
-        return (params, opt_state, stats), info
+        return (params, opt_state, stats, step_scale), info
 
     def update_epoch(carry, key):
-        params, opt_state, stats, data = carry
+        params, opt_state, stats, step_scale, data = carry
         permutation = jax.random.permutation(key, config.batch_size)
         shuffled = jax.tree.map(lambda x: x[permutation].reshape((config.num_minibatches, -1) + x.shape[1:]), data)
-        (params, opt_state, stats), info = jax.lax.scan(update_minibatch, (params, opt_state, stats), shuffled)
-        return (params, opt_state, stats, data), info
+        (params, opt_state, stats, step_scale), info = jax.lax.scan(
+            update_minibatch, (params, opt_state, stats, step_scale), shuffled
+        )
+        return (params, opt_state, stats, step_scale, data), info
 
     @jit
-    def iteration(state: TrainState):
+    def iteration(state: TrainState, fraction_done: jnp.ndarray):
         # An unroll's first step keeps the noise it is drawn with as recorded (`continuing` False):
         # the last iteration's policy made that noise, so recomputing it from the current policy's
         # mean would give a step this rollout did not take (a likelihood ratio off 1 before any update).
@@ -469,10 +488,11 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         # fitted on the normalisation the next rollout will act with.
         stats = rl.update_normaliser(state.stats, batch.obs) if config.normalise_observations else state.stats
         advantage, target = advantages(state.params, state.stats, batch)
-        params = state.params
+        params, average_policy = state.params, state.average_policy
         if config.absorb_normaliser_updates:
             params = {**params, "policy": rl.absorb_normaliser_update(params["policy"], state.stats, stats),
                       "value": rl.absorb_normaliser_update(params["value"], state.stats, stats)}  # fmt: skip
+            average_policy = rl.absorb_normaliser_update(average_policy, state.stats, stats)
         # How far the new statistics alone move the rollout policy (its KL, before any update): with
         # a small exploration std a small shift of the normalisation is a large change of the policy.
         # Measured as `policy_kl` is (at the stationary std; until session 17 at the innovation std,
@@ -483,11 +503,19 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
         normaliser_kl = jnp.mean(jnp.sum(0.5 * change**2, axis=-1))
         flat = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), (batch, advantage, target))
         key, epoch_key = jax.random.split(state.key)
-        (params, opt_state, _, _), info = jax.lax.scan(
+        # `final_step_scale`: every update scaled by a factor falling linearly from 1 over the run.
+        step_scale = 1.0 - (1.0 - config.final_step_scale) * fraction_done
+        (params, opt_state, _, _, _), info = jax.lax.scan(
             update_epoch,
-            (params, state.opt_state, stats, flat),
+            (params, state.opt_state, stats, step_scale, flat),
             jax.random.split(epoch_key, config.update_epochs),
         )
+        if config.policy_average:
+            weight = config.policy_average
+            average_policy = jax.tree.map(lambda old, new: weight * old + (1.0 - weight) * new,
+                                          average_policy, params["policy"])  # fmt: skip
+        else:
+            average_policy = params["policy"]
         ended = jax.tree.map(jnp.sum, ended)
         count = jnp.maximum(ended["count"], 1)
         metrics = {
@@ -498,16 +526,20 @@ def make_iteration(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.Gradien
             "reward_per_step": jnp.mean(batch.reward),
             "std": jnp.sum(explored * jnp.exp(params["log_std"])) / jnp.sum(explored),
             "normaliser_kl": normaliser_kl,
+            "step_scale": step_scale,
             **{name: jnp.mean(value) for name, value in info.items()},
         }
-        return state._replace(params=params, opt_state=opt_state, stats=stats, key=key), metrics
+        state = state._replace(params=params, opt_state=opt_state, stats=stats, key=key, average_policy=average_policy)
+        return state, metrics
 
     return iteration
 
 
 def export_params(state: TrainState) -> dict:
-    """The parameters a checkpoint holds (numpy): networks, log std and observation statistics."""
-    params = jax.tree.map(np.asarray, state.params)
+    """The parameters a checkpoint holds (numpy): networks (the policy's the average of
+    `PPOConfig.policy_average`, the trained one itself by default), log std and observation
+    statistics."""
+    params = jax.tree.map(np.asarray, {**state.params, "policy": state.average_policy})
     return dict(params, obs_mean=np.asarray(state.stats.mean), obs_var=np.asarray(state.stats.var),
                 obs_count=np.asarray(state.stats.count))  # fmt: skip
 
@@ -536,6 +568,7 @@ def init_state(task: DbdFuncEnv, config: PPOConfig, optimiser: optax.GradientTra
         previous_action=jnp.broadcast_to(rl.home_action(task), noise.shape),
         **envs,
         continuing=jnp.zeros((config.num_envs,), bool),
+        average_policy=params["policy"],
     )
 
 
@@ -573,6 +606,10 @@ def train(
     clock = rl.Clock()
     if not 0.0 <= config.noise_correlation < 1.0:
         raise ValueError(f"train: noise_correlation must be in [0, 1), got {config.noise_correlation!r}")
+    if not 0.0 < config.final_step_scale <= 1.0:
+        raise ValueError(f"train: final_step_scale must be in (0, 1], got {config.final_step_scale!r}")
+    if not 0.0 <= config.policy_average < 1.0:
+        raise ValueError(f"train: policy_average must be in [0, 1), got {config.policy_average!r}")
     devices = rl.env_devices(config.num_envs, devices)
     state = rl.distribute(init_state(task, config, optimiser, seed), BATCH_FIELDS, devices)
 
@@ -664,6 +701,16 @@ def main(argv: list[str] | None = None) -> Result:
         "--no-absorb-normaliser", action="store_true",
         help="let each update of the observation statistics move the policy (PPOConfig.absorb_normaliser_updates)",
     )  # fmt: skip
+    parser.add_argument(
+        "--policy-average", type=float, default=defaults.policy_average,
+        help="evaluate and keep a moving average of the policy's weights, this much of the old one kept "
+        "each iteration (PPOConfig.policy_average; 0: the trained policy)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--final-step-scale", type=float, default=defaults.final_step_scale,
+        help="anneal every update by a factor falling linearly from 1 to this over the run "
+        "(PPOConfig.final_step_scale; 1: no annealing)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.steps is None and args.minutes is None:
         parser.error("give --steps or --minutes")
@@ -678,7 +725,8 @@ def main(argv: list[str] | None = None) -> Result:
                        explored_actions=None if args.explored_actions is None else tuple(args.explored_actions),
                        normalise_observations=not args.no_normalise,
                        absorb_normaliser_updates=not args.no_absorb_normaliser, hidden=tuple(args.hidden),
-                       trailing_batch=args.trailing_batch)  # fmt: skip
+                       trailing_batch=args.trailing_batch, policy_average=args.policy_average,
+                       final_step_scale=args.final_step_scale)  # fmt: skip
     budget = None if args.minutes is None else 60.0 * args.minutes
     task, eval_task = rl.tasks_of(args)
     result = train(task, config, total_steps=args.steps, time_budget_s=budget, seed=args.seed,

@@ -327,9 +327,11 @@ def run(
     keep_best: bool = False,
     eval_task: DbdFuncEnv | None = None,
 ) -> Result:
-    """Run `iteration(state) -> (state, metrics)` (jitted by the caller) until `iterations` or
-    `time_budget_s` wall seconds of `clock` (compilation included, evaluations not: the summary's
-    `evaluation_wall_s` has them), logging one history row each,
+    """Run `iteration(state, fraction_done) -> (state, metrics)` (jitted by the caller) until
+    `iterations` or `time_budget_s` wall seconds of `clock` (compilation included, evaluations not:
+    the summary's `evaluation_wall_s` has them), logging one history row each. fraction_done: a
+    float32 in [0, 1], how much of the run was done before the iteration, by iterations or by wall
+    time, whichever budget is nearer its end (a trainer may anneal by it; the row keeps it),
     evaluating every `eval_every` iterations and at the end. failure(row): a reason to stop early,
     or None. summary: the trainer's own entries (algorithm, config, ...); timings, evaluations and
     the machine are added here. eval_task: the env every evaluation runs (validation and reported
@@ -379,8 +381,11 @@ def run(
     compile_s, index = None, 0
     try:
         while True:
-            state, metrics = iteration(state)
-            metrics = {key: float(value) for key, value in metrics.items()}
+            done = [index / iterations] if iterations is not None else []
+            done += [clock.wall() / time_budget_s] if time_budget_s is not None else []
+            fraction_done = min(max(done), 1.0)
+            state, metrics = iteration(state, np.float32(fraction_done))
+            metrics = {"fraction_done": fraction_done, **{key: float(value) for key, value in metrics.items()}}
             if compile_s is None:
                 compile_s = clock.wall()
             index += 1
