@@ -383,7 +383,7 @@ def run(
         while True:
             done = [index / iterations] if iterations is not None else []
             done += [clock.wall() / time_budget_s] if time_budget_s is not None else []
-            fraction_done = min(max(done), 1.0)
+            fraction_done = min(max(done, default=0.0), 1.0)
             state, metrics = iteration(state, np.float32(fraction_done))
             metrics = {"fraction_done": fraction_done, **{key: float(value) for key, value in metrics.items()}}
             if compile_s is None:
