@@ -522,13 +522,11 @@ def test_an_annealed_update_is_the_plain_one_scaled_and_the_kl_rule_does_not_und
         # 5e-7); the moves are 1e-4-1e-3, so a wrong scale is off by 100x that.
         jax.tree.map(lambda got, plain: np.testing.assert_allclose(got, scale * plain, rtol=1e-4, atol=2e-6),
                      moved[0.2][0], moved[1.0][0])  # fmt: skip
-        assert max(float(np.abs(x).max()) for x in jax.tree.leaves(moved[1.0][0])) > 1e-4
     else:  # the same decisions (the plain steps' KL, 0.07 here, is above 2 x 0.02; the scaled ones' 0.026 is not)
         rates = [float(moved[final][1]["learning_rate"]) for final in (1.0, 0.2)]
         assert rates[1] == pytest.approx(scale * rates[0], rel=1e-5)
         held = [float(moved[final][2][1].hyperparams["learning_rate"]) for final in (1.0, 0.2)]
         assert held[1] == held[0]
-    largest = max(float(np.abs(x).max()) for x in jax.tree.leaves(moved[1.0][0]))
-    assert largest > 0.0
+    assert max(float(np.abs(x).max()) for x in jax.tree.leaves(moved[1.0][0])) > 1e-4  # the policy moved
     with pytest.raises(ValueError, match="final_step_scale"):
         ppo.train(task, ppo.PPOConfig(num_envs=4, unroll_length=4, final_step_scale=0.0), total_steps=16)
