@@ -185,6 +185,7 @@ class RagdollEnv(DbdFuncEnv):
         self.joint_kinds = tuple(doll.joint_kinds[name] for name in self.joint_names)
         self.pelvis = doll.bodies["pelvis"]
         self.torso = doll.bodies["torso"]
+        self.feet = (doll.bodies["foot_l"], doll.bodies["foot_r"])
         self.others = tuple(index for name, index in doll.bodies.items() if name != "pelvis")
         self.rest_height = float(doll.rest_height)
         self.fall_height = 0.55 * self.rest_height if fall_height is None else float(fall_height)
@@ -219,6 +220,19 @@ class RagdollEnv(DbdFuncEnv):
 
     def pelvis_height(self, state: EnvState) -> jnp.ndarray:
         return state.physics.pos[self.pelvis, 2]
+
+    def capture_offset(self, physics: dbd.State) -> jnp.ndarray:
+        """(2,) m, world x and y: the capture point of the linear inverted pendulum, xi = c + v / omega
+        with omega = sqrt(g / c_z) (c, v: the doll's centre of mass and its velocity), less the middle
+        of the feet (each foot's origin lies over the middle of its sole, heel to toe). Where xi
+        stands the centre of mass comes to rest over it; held over the feet's middle it leaves the
+        largest push a balance without stepping can still take (module docstring)."""
+        mass = self.model.bodies.mass[: physics.pos.shape[0]]
+        share = (mass / jnp.sum(mass))[:, None]
+        centre, velocity = jnp.sum(share * physics.pos, axis=0), jnp.sum(share * physics.vel, axis=0)
+        omega = jnp.sqrt(-self.model.gravity[2] / jnp.maximum(centre[2], 0.1 * self.rest_height))
+        feet = 0.5 * (physics.pos[self.feet[0], :2] + physics.pos[self.feet[1], :2])
+        return centre[:2] + velocity[:2] / omega - feet
 
     # ------------------------------------------------------------------------ task hooks
     def initial_time(self, key: jnp.ndarray) -> jnp.ndarray:
@@ -329,11 +343,13 @@ class RagdollStand(RagdollEnv):
       upright = -`upright_weight` (1.0) x (1 - z of the torso's up axis) (0 standing straight),
       height  = -`height_weight` (2.0) x |pelvis height - standing height| (m),
       drift   = -`drift_weight` (0.1) x |horizontal pelvis velocity|^2 ((m/s)^2),
-      smooth  = -`smooth_weight` (0.1) x mean((action - previous action)^2).
+      smooth  = -`smooth_weight` (0.1) x mean((action - previous action)^2),
+      capture = -`capture_weight` (0.0) x |capture point - middle of the feet|^2 (m^2,
+                `capture_offset`): a shaping term for training (0 in the registered task).
     info: "pelvis_height", "push", the reward terms and the flags.
     """
 
-    reward_terms = ("alive", "upright", "height", "drift", "smooth")
+    reward_terms = ("alive", "upright", "height", "drift", "smooth", "capture")
 
     def __init__(
         self,
@@ -342,14 +358,16 @@ class RagdollStand(RagdollEnv):
         upright_weight: float = 1.0,
         height_weight: float = 2.0,
         drift_weight: float = 0.1,
+        capture_weight: float = 0.0,
         **kwargs,
     ):
         self.alive_bonus = float(alive_bonus)
         self.upright_weight = float(upright_weight)
         self.height_weight = float(height_weight)
         self.drift_weight = float(drift_weight)
+        self.capture_weight = float(capture_weight)
         config = dict(alive_bonus=alive_bonus, upright_weight=upright_weight, height_weight=height_weight,
-                      drift_weight=drift_weight)  # fmt: skip
+                      drift_weight=drift_weight, capture_weight=capture_weight)  # fmt: skip
         super().__init__(push_interval=push_interval, config=config, **kwargs)
 
     def task_reward(self, state: EnvState, action: jnp.ndarray, next_state: EnvState) -> dict[str, jnp.ndarray]:
@@ -361,6 +379,11 @@ class RagdollStand(RagdollEnv):
             "height": -self.height_weight * jnp.abs(self.pelvis_height(next_state) - self.rest_height),
             "drift": -self.drift_weight * jnp.sum(speed**2),
             "smooth": self.smooth_penalty(state, action),
+            "capture": (  # last and exactly zero at weight 0: the other terms' sum is as without it
+                -self.capture_weight * jnp.sum(self.capture_offset(physics) ** 2)
+                if self.capture_weight
+                else jnp.zeros((), self.dtype)
+            ),
         }
 
 

@@ -485,6 +485,40 @@ def test_the_kick_of_a_step_lands_on_the_torso_before_the_physics(stand):
     np.testing.assert_array_equal(np.asarray(kicked.vel), np.asarray(expected))
 
 
+def test_the_capture_term_is_the_squared_capture_point_offset_and_grows_with_a_push_from_behind():
+    """-w |xi - feet|^2 with xi = c + v / sqrt(g / c_z), computed here from the bodies in numpy; the
+    build pose's centre of mass is 4.8 cm behind the feet's middle, so a kick from the front moves
+    the capture point backwards, away from it, and one from behind brings it nearer."""
+    weight = 50.0
+    shaped = envs.RagdollStand(capture_weight=weight)
+    state, _, _ = shaped.reset(jax.random.PRNGKey(6))
+    yaw = float(shaped.heading(state.physics))
+    forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    mass = np.asarray(shaped.model.bodies.mass)
+
+    def term(kick):
+        vel = state.physics.vel.at[shaped.torso].add(jnp.asarray(kick, state.physics.vel.dtype))
+        kicked = dataclasses.replace(state, physics=dataclasses.replace(state.physics, vel=vel))
+        got = float(shaped.task_reward(state, jnp.zeros(26), kicked)["capture"])
+        pos, v = np.asarray(state.physics.pos, np.float64), np.asarray(vel, np.float64)
+        centre, velocity = mass @ pos / mass.sum(), mass @ v / mass.sum()
+        xi = centre[:2] + velocity[:2] / np.sqrt(9.81 / centre[2])
+        feet = 0.5 * (pos[shaped.feet[0], :2] + pos[shaped.feet[1], :2])
+        np.testing.assert_allclose(got, -weight * np.sum((xi - feet) ** 2), rtol=1e-4)
+        return got, (xi - feet) @ forward[:2]
+
+    at_rest, along = term(np.zeros(3))
+    assert -0.05 < along < -0.045  # the build pose's centre of mass, 4.8 cm behind the feet's middle
+    pushed_forward, along_forward = term(0.4 * forward)  # a kick from behind
+    pushed_backward, along_backward = term(-0.4 * forward)
+    share_over_omega = 0.29 * 0.4 / np.sqrt(9.81 / 0.99)  # the torso's share of the mass
+    np.testing.assert_allclose([along_forward - along, along - along_backward], share_over_omega, rtol=0.05)
+    assert pushed_backward < at_rest < pushed_forward < 0.0
+    # The registered task: the term is exactly zero and the reward the sum of the others.
+    terms = envs.RagdollStand().task_reward(state, jnp.zeros(26), state)
+    assert float(terms["capture"]) == 0.0
+
+
 def test_a_push_schedule_that_is_not_known_is_refused():
     with pytest.raises(ValueError, match="push_schedule must be one of"):
         envs.RagdollStand(push_schedule="poisson")
