@@ -485,7 +485,7 @@ def test_the_kick_of_a_step_lands_on_the_torso_before_the_physics(stand):
     np.testing.assert_array_equal(np.asarray(kicked.vel), np.asarray(expected))
 
 
-def test_the_capture_term_is_the_squared_capture_point_offset_and_grows_with_a_push_from_behind():
+def test_the_capture_term_is_the_squared_capture_point_offset_and_a_backward_push_makes_it_worse():
     """-w |xi - feet|^2 with xi = c + v / sqrt(g / c_z), computed here from the bodies in numpy; the
     build pose's centre of mass is 4.8 cm behind the feet's middle, so a kick from the front moves
     the capture point backwards, away from it, and one from behind brings it nearer."""
