@@ -230,6 +230,7 @@ class RagdollEnv(DbdFuncEnv):
         mass = self.model.bodies.mass[: physics.pos.shape[0]]
         share = (mass / jnp.sum(mass))[:, None]
         centre, velocity = jnp.sum(share * physics.pos, axis=0), jnp.sum(share * physics.vel, axis=0)
+        # The height floored at a tenth of the standing one: a doll lying flat keeps a finite omega.
         omega = jnp.sqrt(-self.model.gravity[2] / jnp.maximum(centre[2], 0.1 * self.rest_height))
         feet = 0.5 * (physics.pos[self.feet[0], :2] + physics.pos[self.feet[1], :2])
         return centre[:2] + velocity[:2] / omega - feet
@@ -366,6 +367,8 @@ class RagdollStand(RagdollEnv):
         self.height_weight = float(height_weight)
         self.drift_weight = float(drift_weight)
         self.capture_weight = float(capture_weight)
+        if not self.capture_weight >= 0.0 or not np.isfinite(self.capture_weight):
+            raise ValueError(f"RagdollStand: capture_weight must be finite and >= 0, got {capture_weight!r}")
         config = dict(alive_bonus=alive_bonus, upright_weight=upright_weight, height_weight=height_weight,
                       drift_weight=drift_weight, capture_weight=capture_weight)  # fmt: skip
         super().__init__(push_interval=push_interval, config=config, **kwargs)

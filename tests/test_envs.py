@@ -517,6 +517,8 @@ def test_the_capture_term_is_the_squared_capture_point_offset_and_a_backward_pus
     # The registered task: the term is exactly zero and the reward the sum of the others.
     terms = envs.RagdollStand().task_reward(state, jnp.zeros(26), state)
     assert float(terms["capture"]) == 0.0
+    with pytest.raises(ValueError, match="capture_weight must be finite and >= 0"):
+        envs.RagdollStand(capture_weight=-1.0)
 
 
 def test_a_push_schedule_that_is_not_known_is_refused():
