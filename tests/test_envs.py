@@ -514,9 +514,12 @@ def test_the_capture_term_is_the_squared_capture_point_offset_and_a_backward_pus
     share_over_omega = 0.29 * 0.4 / np.sqrt(9.81 / 0.99)  # the torso's share of the mass
     np.testing.assert_allclose([along_forward - along, along - along_backward], share_over_omega, rtol=0.05)
     assert pushed_backward < at_rest < pushed_forward < 0.0
-    # The registered task: the term is exactly zero and the reward the sum of the others.
-    terms = envs.RagdollStand().task_reward(state, jnp.zeros(26), state)
-    assert float(terms["capture"]) == 0.0
+    # The registered task: the term is exactly zero, and the other terms are those of the shaped task.
+    kicked = dataclasses.replace(state, physics=dataclasses.replace(state.physics, vel=state.physics.vel + 0.1))
+    plain, with_capture = (task.task_reward(state, jnp.zeros(26), kicked) for task in (envs.RagdollStand(), shaped))
+    assert float(plain["capture"]) == 0.0 and float(with_capture["capture"]) < 0.0
+    for name in ("alive", "upright", "height", "drift", "smooth"):
+        assert float(plain[name]) == float(with_capture[name]), name
     with pytest.raises(ValueError, match="capture_weight must be finite and >= 0"):
         envs.RagdollStand(capture_weight=-1.0)
 
