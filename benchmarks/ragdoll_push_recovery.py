@@ -120,7 +120,6 @@ def leans(task: RagdollStand, ankle_targets, steps: int = 150) -> dict:
     for name in ("ankle_l", "ankle_r"):
         entry = task.doll.controls[name].start
         actions[:, entry] = np.asarray(ankle_targets) / task.control_scale[entry]
-    mass = jnp.asarray(task.model.bodies.mass)
 
     @dbd.jit
     def run(key):
@@ -130,8 +129,7 @@ def leans(task: RagdollStand, ankle_targets, steps: int = 150) -> dict:
         def body(carry, _):
             state, alive = carry
             state, _, _, terminated, _, _ = jax.vmap(task.step)(state, jnp.asarray(actions))
-            weights = mass[: state.physics.pos.shape[1]]
-            com = jnp.sum(weights[None, :, None] * state.physics.pos, 1) / jnp.sum(weights)
+            com, _ = dbd.diagnostics.centre_of_mass(task.model, state.physics)
             return (state, alive & ~terminated), (yaw_rotate_inverse(yaw, com)[:, 0], alive)
 
         _, (com_x, alive) = jax.lax.scan(body, (state, jnp.ones(n, bool)), None, length=steps)

@@ -57,6 +57,13 @@ def ik_target_errors(model: Model, state: State, control: jnp.ndarray | None = N
     return math.safe_norm(point - goal)
 
 
+def centre_of_mass(model: Model, state: State) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Position (m) and velocity (m/s) of the whole model's centre of mass, each (..., 3)."""
+    total = jnp.sum(model.bodies.mass)
+    position = jnp.sum(model.bodies.mass[:, None] * state.pos, axis=-2) / total
+    return position, linear_momentum(model, state) / total
+
+
 def linear_momentum(model: Model, state: State) -> jnp.ndarray:
     """Total linear momentum (kg m/s), (..., 3)."""
     return jnp.sum(model.bodies.mass[:, None] * state.vel, axis=-2)

@@ -227,9 +227,7 @@ class RagdollEnv(DbdFuncEnv):
         of the feet (each foot's origin lies over the middle of its sole, heel to toe). Where xi
         stands the centre of mass comes to rest over it; held over the feet's middle it leaves the
         largest push a balance without stepping can still take (module docstring)."""
-        mass = self.model.bodies.mass[: physics.pos.shape[0]]
-        share = (mass / jnp.sum(mass))[:, None]
-        centre, velocity = jnp.sum(share * physics.pos, axis=0), jnp.sum(share * physics.vel, axis=0)
+        centre, velocity = dbd.diagnostics.centre_of_mass(self.model, physics)
         # The height floored at a tenth of the standing one: a doll lying flat keeps a finite omega.
         omega = jnp.sqrt(-self.model.gravity[2] / jnp.maximum(centre[2], 0.1 * self.rest_height))
         feet = 0.5 * (physics.pos[self.feet[0], :2] + physics.pos[self.feet[1], :2])

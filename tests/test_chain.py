@@ -76,6 +76,29 @@ def test_chain_with_a_heavy_ball_makes_no_energy_at_large_steps():
     assert energy.max() <= 1e-3 * unit
 
 
+def test_the_centre_of_mass_of_a_free_chain_moves_in_a_straight_line_at_its_first_velocity():
+    rng = np.random.default_rng(1)
+    b = dbd.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    previous = None
+    for i in range(6):  # links of 0.1 to 0.6 kg: the centre of mass is not the bodies' plain mean
+        body = b.add_body(pos=((i + 0.5) * 0.1, 0, 0), mass=0.1 * (i + 1), inertia=scenes.LINK_INERTIA,
+                          vel=tuple(rng.normal(size=3)))  # fmt: skip
+        if previous is not None:
+            b.add_ball_joint(previous, body, anchor=(i * 0.1, 0, 0))
+        previous = body
+    model = b.finalize(dt=1 / 60, iterations=8)
+    start = dbd.init(model)
+    mass = np.asarray(model.bodies.mass, np.float64)
+    position, velocity = diagnostics.centre_of_mass(model, start)
+    np.testing.assert_allclose(position, mass @ np.asarray(start.pos) / mass.sum(), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(velocity, mass @ np.asarray(start.vel) / mass.sum(), rtol=1e-6, atol=1e-7)
+    _, trajectory = jax.jit(lambda s: dbd.rollout(model, s, steps=60))(start)
+    moved, moving = diagnostics.centre_of_mass(model, trajectory)  # (60, 3) each
+    times = np.arange(1, 61)[:, None] / 60
+    np.testing.assert_allclose(moved, np.asarray(position) + times * np.asarray(velocity), atol=1e-4)
+    np.testing.assert_allclose(moving, np.broadcast_to(velocity, moving.shape), atol=1e-4)
+
+
 def test_free_chain_conserves_linear_momentum():
     links = 6
     rng = np.random.default_rng(0)
