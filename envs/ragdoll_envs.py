@@ -345,6 +345,10 @@ class RagdollStand(RagdollEnv):
       smooth  = -`smooth_weight` (0.1) x mean((action - previous action)^2),
       capture = -`capture_weight` (0.0) x |capture point - middle of the feet|^2 (m^2,
                 `capture_offset`): a shaping term for training (0 in the registered task).
+                With `capture_scale` s (m; None: unbounded) it saturates, -w s^2 (1 - exp(-d^2 / s^2))
+                for d = |offset|: the same near the feet, never below -w s^2 per step, so that
+                with w s^2 under the alive bonus a falling doll's steps do not cost more than
+                living pays (session 51: unbounded, runs learnt to fall sooner to end the penalty).
     info: "pelvis_height", "push", the reward terms and the flags.
     """
 
@@ -358,6 +362,7 @@ class RagdollStand(RagdollEnv):
         height_weight: float = 2.0,
         drift_weight: float = 0.1,
         capture_weight: float = 0.0,
+        capture_scale: float | None = None,
         **kwargs,
     ):
         self.alive_bonus = float(alive_bonus)
@@ -367,8 +372,12 @@ class RagdollStand(RagdollEnv):
         self.capture_weight = float(capture_weight)
         if not self.capture_weight >= 0.0 or not np.isfinite(self.capture_weight):
             raise ValueError(f"RagdollStand: capture_weight must be finite and >= 0, got {capture_weight!r}")
+        self.capture_scale = None if capture_scale is None else float(capture_scale)
+        if self.capture_scale is not None and not (self.capture_scale > 0.0 and np.isfinite(self.capture_scale)):
+            raise ValueError(f"RagdollStand: capture_scale must be None or finite and > 0 (m), got {capture_scale!r}")
         config = dict(alive_bonus=alive_bonus, upright_weight=upright_weight, height_weight=height_weight,
-                      drift_weight=drift_weight, capture_weight=capture_weight)  # fmt: skip
+                      drift_weight=drift_weight, capture_weight=capture_weight,
+                      capture_scale=capture_scale)  # fmt: skip
         super().__init__(push_interval=push_interval, config=config, **kwargs)
 
     def task_reward(self, state: EnvState, action: jnp.ndarray, next_state: EnvState) -> dict[str, jnp.ndarray]:
@@ -381,11 +390,17 @@ class RagdollStand(RagdollEnv):
             "drift": -self.drift_weight * jnp.sum(speed**2),
             "smooth": self.smooth_penalty(state, action),
             "capture": (  # last and exactly zero at weight 0: the other terms' sum is as without it
-                -self.capture_weight * jnp.sum(self.capture_offset(physics) ** 2)
-                if self.capture_weight
-                else jnp.zeros((), self.dtype)
+                self.capture_penalty(physics) if self.capture_weight else jnp.zeros((), self.dtype)
             ),
         }
+
+    def capture_penalty(self, physics: dbd.State) -> jnp.ndarray:
+        """() the capture term (class docstring): -w d^2, or -w s^2 (1 - exp(-d^2 / s^2)) with a scale."""
+        squared = jnp.sum(self.capture_offset(physics) ** 2)
+        if self.capture_scale is None:
+            return -self.capture_weight * squared
+        scale_squared = self.capture_scale**2
+        return -self.capture_weight * scale_squared * -jnp.expm1(-squared / scale_squared)
 
 
 # Reference motion of RagdollTrack: marching in place with arm swing, joint targets

@@ -527,6 +527,38 @@ def test_the_capture_term_is_the_squared_capture_point_offset_and_a_backward_pus
         envs.RagdollStand(capture_weight=-1.0)
 
 
+def test_the_bounded_capture_term_is_the_quadratic_near_the_feet_and_never_below_its_floor():
+    """With capture_scale s the term is -w s^2 (1 - exp(-d^2 / s^2)) of the same offset d: within
+    2% of -w d^2 at the build pose (d = 4.8 cm, s = 30 cm), at most -w s^2 however hard the kick,
+    and a harder kick still costs more (it saturates, it does not turn)."""
+    weight, scale = 50.0, 0.3
+    quadratic = envs.RagdollStand(capture_weight=weight)
+    bounded = envs.RagdollStand(capture_weight=weight, capture_scale=scale)
+    state, _, _ = quadratic.reset(jax.random.PRNGKey(6))
+    yaw = float(quadratic.heading(state.physics))
+    forward = jnp.asarray([np.cos(yaw), np.sin(yaw), 0.0], state.physics.vel.dtype)
+
+    def terms(speed):
+        vel = state.physics.vel.at[quadratic.torso].add(-speed * forward)  # a kick from the front
+        kicked = dataclasses.replace(state, physics=dataclasses.replace(state.physics, vel=vel))
+        squared = float(jnp.sum(quadratic.capture_offset(kicked.physics) ** 2))
+        got = [float(task.task_reward(state, jnp.zeros(26), kicked)["capture"]) for task in (quadratic, bounded)]
+        return squared, *got
+
+    squared, plain, saturating = terms(0.0)
+    np.testing.assert_allclose(plain, -weight * squared, rtol=1e-5)
+    np.testing.assert_allclose(saturating, -weight * scale**2 * (1.0 - np.exp(-squared / scale**2)), rtol=1e-5)
+    assert abs(saturating / plain - 1.0) < 0.02
+    costs = [terms(speed) for speed in (1.0, 3.0, 10.0)]
+    assert all(plain < -weight * scale**2 for _, plain, _ in costs[1:])  # the unbounded term passes the floor
+    saturating = [cost[2] for cost in costs]
+    assert -weight * scale**2 < saturating[2] < saturating[1] < saturating[0] < 0.0
+    assert saturating[2] < -0.99 * weight * scale**2
+    for bad in (0.0, -0.1, float("inf")):
+        with pytest.raises(ValueError, match="capture_scale must be None or finite and > 0"):
+            envs.RagdollStand(capture_weight=weight, capture_scale=bad)
+
+
 def test_a_push_schedule_that_is_not_known_is_refused():
     with pytest.raises(ValueError, match="push_schedule must be one of"):
         envs.RagdollStand(push_schedule="poisson")
