@@ -346,7 +346,7 @@ class RagdollStand(RagdollEnv):
       capture = -`capture_weight` (0.0) x |capture point - middle of the feet|^2 (m^2,
                 `capture_offset`): a shaping term for training (0 in the registered task).
                 With `capture_scale` s (m; None: unbounded) it saturates, -w s^2 (1 - exp(-d^2 / s^2))
-                for d = |offset|: the same near the feet, never below -w s^2 per step, so that
+                for d = |offset|: about -w d^2 near the feet, never below -w s^2 per step, so that
                 with w s^2 under the alive bonus a falling doll's steps do not cost more than
                 living pays (session 51: unbounded, runs learnt to fall sooner to end the penalty).
     info: "pelvis_height", "push", the reward terms and the flags.
@@ -400,7 +400,8 @@ class RagdollStand(RagdollEnv):
         if self.capture_scale is None:
             return -self.capture_weight * squared
         scale_squared = self.capture_scale**2
-        return -self.capture_weight * scale_squared * -jnp.expm1(-squared / scale_squared)
+        # -w s^2 (1 - exp(-d^2 / s^2)) = w s^2 expm1(-d^2 / s^2), exact for small d too
+        return self.capture_weight * scale_squared * jnp.expm1(-squared / scale_squared)
 
 
 # Reference motion of RagdollTrack: marching in place with arm swing, joint targets

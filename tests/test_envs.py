@@ -542,13 +542,14 @@ def test_the_bounded_capture_term_is_the_quadratic_near_the_feet_and_never_below
         vel = state.physics.vel.at[quadratic.torso].add(-speed * forward)  # a kick from the front
         kicked = dataclasses.replace(state, physics=dataclasses.replace(state.physics, vel=vel))
         squared = float(jnp.sum(quadratic.capture_offset(kicked.physics) ** 2))
-        got = [float(task.task_reward(state, jnp.zeros(26), kicked)["capture"]) for task in (quadratic, bounded)]
-        return squared, *got
+        plain, saturating = (float(task.task_reward(state, jnp.zeros(26), kicked)["capture"])
+                             for task in (quadratic, bounded))  # fmt: skip
+        np.testing.assert_allclose(plain, -weight * squared, rtol=1e-5)
+        np.testing.assert_allclose(saturating, -weight * scale**2 * (1.0 - np.exp(-squared / scale**2)), rtol=1e-5)
+        return squared, plain, saturating
 
     squared, plain, saturating = terms(0.0)
-    np.testing.assert_allclose(plain, -weight * squared, rtol=1e-5)
-    np.testing.assert_allclose(saturating, -weight * scale**2 * (1.0 - np.exp(-squared / scale**2)), rtol=1e-5)
-    assert abs(saturating / plain - 1.0) < 0.02
+    assert 0.045**2 < squared < 0.05**2 and abs(saturating / plain - 1.0) < 0.02
     costs = [terms(speed) for speed in (1.0, 3.0, 10.0)]
     assert all(plain < -weight * scale**2 for _, plain, _ in costs[1:])  # the unbounded term passes the floor
     saturating = [cost[2] for cost in costs]
