@@ -60,13 +60,7 @@ def colour_classes(structure: Structure) -> list[int | np.ndarray]:
     took 0.54 instead of 0.77 ms of CPU at batch 1 and 3.77 instead of 4.66 ms at batch 16)."""
     tables = structure.family_bodies()
     kinds = joints.variants(structure) if structure.num_joints else []
-    joint_class = np.zeros(structure.num_joints, np.int64)
-    # The kinds in the reverse of the order their first joint was added (the hinges first on Brax's
-    # humanoid and on the ragdoll): chosen by measurement, as the Gauss-Seidel order moves results.
-    # The other way round the ragdoll's demo keyframes toppled it (tests/test_ragdoll.py, slow);
-    # this way the dropped humanoid's largest gap at 1 x 4 is 3.64 mm instead of 2.96.
-    for k, (members, _) in enumerate(sorted(kinds, key=lambda kind: -kind[0][0])):
-        joint_class[members] = k
+    joint_class = colouring.kind_classes([members for members, _ in kinds], structure.num_joints)
     first = max(len(kinds), 1)  # the classes after the joints'
     others = len(tables) - 1 - len(structure.contact_groups)  # springs, distances, ..., the IK targets
     return [joint_class, *range(first, first + others), *[first + others] * len(structure.contact_groups)]

@@ -128,6 +128,32 @@ def test_dropped_ant_under_the_impulse_solver_keeps_its_rotors_from_spinning_up(
     assert energy.max() < float(diagnostics.energy(model, start)) + 0.1
 
 
+@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced(float64, monkeypatch, solver):
+    """The rotor residuals and the rotor pass trace each kind of joint with its own rows
+    (`solvers.dbd.rotor_kinds`: the humanoid's hinges, and its universal and gimbal joints); the
+    rows a kind lacks are inactive, so traced with every row for every joint (on the same colours)
+    the steps must come out the same, to rounding."""
+    from dbdjax.constraints import joints
+    from dbdjax.solvers import dbd as solver_dbd
+
+    model = dbd.load_mjcf(ASSETS / "humanoid.xml", substeps=1, iterations=2, solver=solver)
+    kinds = solver_dbd.rotor_kinds(model)
+    assert [len(members) for members, _ in kinds] == [5, 5]  # universal and gimbal share their rows
+    assert sorted(len({"rotor_hinge", "rotor_euler"} & rows) for _, rows in kinds) == [1, 1]  # a kind's own rotor rows
+    controls = jnp.asarray(np.random.default_rng(3).uniform(-0.4, 0.4, (30, model.num_controls)))
+    _, by_kind = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
+    every_row = joints.rows_in_use(model.structure)
+    for name in ("project_rotor_momentum", "rotor_excess"):
+        traced = getattr(joints, name)
+        monkeypatch.setattr(joints, name, lambda *args, traced=traced: traced(*args[:-1], every_row))
+    _, all_rows = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
+    assert bool(jnp.all(dbd.is_finite(by_kind)))
+    assert float(jnp.max(jnp.abs(by_kind.ang_vel))) > 1.0, "the humanoid should really move"
+    for ours, reference in zip(jax.tree.leaves(by_kind), jax.tree.leaves(all_rows), strict=True):
+        np.testing.assert_allclose(np.asarray(ours), np.asarray(reference), rtol=0, atol=1e-12)
+
+
 @pytest.mark.slow  # 38 s; the tree solve landing an ant with its rotors counted stays in CI (test_tree.py)
 def test_dropped_ant_with_armature_gains_no_energy_with_its_rotors_under_the_tree_solve():
     # The same drop with tree_solve (1 sweep at 4 substeps): the whole solve takes the rotor rows
