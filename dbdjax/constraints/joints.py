@@ -190,17 +190,23 @@ def _coordinates(joint: Joints, flag: JointFlags, pair: BodyPair, kinds: frozens
 def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
     """Every joint's coordinates at the bodies' poses pos (N, 3), quat (N, 4): (hinge or planar
     angles (J,), slider travels (J,), universal / gimbal angles (J, 3), relative rotations from
-    rest (J, 4)), those of the kinds whose armature the model has (`rows_in_use`; else zeros)."""
+    rest (J, 4)), those of the kinds whose armature each joint's kind has (else zeros). Each kind of
+    joint (`variants`) is measured with its own rows: a hinge never computes a gimbal's angles."""
     structure = model.structure
-    kinds = rows_in_use(structure)
-    a, b = structure.joint_body_a.array, structure.joint_body_b.array
     pos, quat = with_world_row(pos), with_world_row(quat, math.quat_identity().astype(quat.dtype))
-    zero = jnp.zeros((len(a), 3), pos.dtype)
-    scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
-    pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 4),
-                    jnp.zeros((len(a), 4, 3), pos.dtype))  # fmt: skip
-    return jax.vmap(lambda joint, flag, two: _coordinates(joint, flag, two, kinds))(model.joints, flags(structure),
-                                                                                     pair)  # fmt: skip
+    parts, order = [], []
+    for members, kinds in variants(structure):
+        a, b = structure.joint_body_a.array[members], structure.joint_body_b.array[members]
+        zero = jnp.zeros((len(a), 3), pos.dtype)
+        scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
+        pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 4),
+                        jnp.zeros((len(a), 4, 3), pos.dtype))  # fmt: skip
+        joint, flag = jax.tree.map(lambda x, m=members: x[m], (model.joints, flags(structure)))
+        parts.append(jax.vmap(lambda joint, flag, two, kinds=kinds: _coordinates(joint, flag, two, kinds))(
+            joint, flag, pair))  # fmt: skip
+        order.append(members)
+    back = np.argsort(np.concatenate(order))
+    return tuple(jnp.concatenate(part)[back] for part in zip(*parts, strict=True))
 
 
 def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_reference: bool = False):
