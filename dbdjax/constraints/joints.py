@@ -194,19 +194,26 @@ def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
     joint (`variants`) is measured with its own rows: a hinge never computes a gimbal's angles."""
     structure = model.structure
     pos, quat = with_world_row(pos), with_world_row(quat, math.quat_identity().astype(quat.dtype))
-    parts, order = [], []
-    for members, kinds in variants(structure):
+
+    def measured(members, kinds):
         a, b = structure.joint_body_a.array[members], structure.joint_body_b.array[members]
         zero = jnp.zeros((len(a), 3), pos.dtype)
         scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
         pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 4),
                         jnp.zeros((len(a), 4, 3), pos.dtype))  # fmt: skip
-        joint, flag = jax.tree.map(lambda x, m=members: x[m], (model.joints, flags(structure)))
-        parts.append(jax.vmap(lambda joint, flag, two, kinds=kinds: _coordinates(joint, flag, two, kinds))(
-            joint, flag, pair))  # fmt: skip
-        order.append(members)
-    back = np.argsort(np.concatenate(order))
-    return tuple(jnp.concatenate(part)[back] for part in zip(*parts, strict=True))
+        joint, flag = jax.tree.map(lambda x: x[members], (model.joints, flags(structure)))
+        return jax.vmap(lambda joint, flag, two: _coordinates(joint, flag, two, kinds))(joint, flag, pair)
+
+    return by_kind(variants(structure), measured)
+
+
+def by_kind(kinds: list[tuple[np.ndarray, frozenset[str]]], compute: Callable):
+    """compute(members (K,) int, rows) -> a pytree of arrays with leading axis K, for each
+    (members, rows) of `kinds` (`variants`, or any partition of some nodes into kinds); the
+    results joined in the nodes' order, one pytree."""
+    parts = [compute(members, rows) for members, rows in kinds]
+    back = np.argsort(np.concatenate([members for members, _ in kinds]))
+    return jax.tree.map(lambda *part: jnp.concatenate(part)[back], *parts)
 
 
 def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_reference: bool = False):

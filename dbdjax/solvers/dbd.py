@@ -340,19 +340,16 @@ def solve(
     excess = None
     swept = rotor_joints(model)
     if swept.size:  # what the sweeps left of the rotor rows, for the rotor pass, each kind with its own rows
-        parts, order = [], []
-        for members, rows in rotor_kinds(model):
+
+        def residuals(members, rows):
             family = constraints.gather(all_families[0], swept[members])
             bodies = _fixed(table, family.bodies)._replace(dx=dx[family.bodies], dtheta=dtheta[family.bodies])
-            parts.append(jax.vmap(functools.partial(_rotor_excess, h=h, rows=rows))(
-                family.params, family.static, bodies, multipliers[0][swept[members]]))  # fmt: skip
-            order.append(members)
-        excess = jnp.concatenate(parts)[np.argsort(np.concatenate(order))]
+            return jax.vmap(lambda params, flag, two, lam: joints.rotor_excess(params[0], flag, params[1], two, lam, h,
+                                                                               rows))(
+                family.params, family.static, bodies, multipliers[0][swept[members]])  # fmt: skip
+
+        excess = joints.by_kind(rotor_kinds(model), residuals)
     return dx[:n], dtheta[:n], normal, excess
-
-
-def _rotor_excess(params, flag, bodies, multipliers, h, rows):
-    return joints.rotor_excess(params[0], flag, params[1], bodies, multipliers, h, rows)
 
 
 def rotor_joints(model: Model) -> np.ndarray:
