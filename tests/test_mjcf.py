@@ -154,6 +154,29 @@ def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced
         np.testing.assert_allclose(np.asarray(ours), np.asarray(reference), rtol=0, atol=1e-12)
 
 
+def test_joint_coordinates_kind_by_kind_are_those_measured_with_every_row(float64, monkeypatch):
+    """`joints.joint_coordinates` (the rotor rows' offsets and references, the rotors' energy)
+    measures each kind of joint with its own rows; on a bent humanoid its hinge and gimbal angles
+    are those measured with every row for every joint, and zero for the kinds that lack them."""
+    from dbdjax.constraints import joints
+
+    model = dbd.load_mjcf(ASSETS / "humanoid.xml")
+    rng = np.random.default_rng(5)
+    start = dbd.init(model)
+    turns = dm.quat_exp(jnp.asarray(rng.normal(scale=0.4, size=start.pos.shape)))
+    pos, quat = start.pos, dm.quat_multiply(turns, start.quat)
+    hinge, _, euler, _ = joints.joint_coordinates(model, pos, quat)
+    monkeypatch.setattr(joints, "variants", lambda s: [(np.arange(s.num_joints), joints.rows_in_use(s))])
+    every_hinge, _, every_euler, _ = joints.joint_coordinates(model, pos, quat)
+    flag = joints.flags(model.structure)
+    assert flag.rotor_hinge.sum() == 5 and flag.rotor_euler.any(axis=-1).sum() == 5
+    np.testing.assert_array_equal(np.asarray(hinge)[flag.rotor_hinge], np.asarray(every_hinge)[flag.rotor_hinge])
+    np.testing.assert_array_equal(np.asarray(euler)[flag.rotor_euler], np.asarray(every_euler)[flag.rotor_euler])
+    assert np.all(np.abs(np.asarray(hinge)[flag.rotor_hinge]) > 1e-2), "the pose should bend every hinge"
+    assert np.all(np.abs(np.asarray(euler)[flag.rotor_euler]) > 1e-2), "and every universal or gimbal hinge"
+    assert not np.asarray(hinge)[~flag.rotor_hinge].any() and not np.asarray(euler)[~flag.rotor_euler].any()
+
+
 @pytest.mark.slow  # 38 s; the tree solve landing an ant with its rotors counted stays in CI (test_tree.py)
 def test_dropped_ant_with_armature_gains_no_energy_with_its_rotors_under_the_tree_solve():
     # The same drop with tree_solve (1 sweep at 4 substeps): the whole solve takes the rotor rows

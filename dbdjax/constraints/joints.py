@@ -190,8 +190,9 @@ def _coordinates(joint: Joints, flag: JointFlags, pair: BodyPair, kinds: frozens
 def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
     """Every joint's coordinates at the bodies' poses pos (N, 3), quat (N, 4): (hinge or planar
     angles (J,), slider travels (J,), universal / gimbal angles (J, 3), relative rotations from
-    rest (J, 4)), those of the kinds whose armature each joint's kind has (else zeros). Each kind of
-    joint (`variants`) is measured with its own rows: a hinge never computes a gimbal's angles."""
+    rest (J, 4)); each joint's only where its kind of joint (`variants`) has that kind of rotor
+    (else zeros): each kind is measured with its own rows, so a hinge never computes a gimbal's
+    angles."""
     structure = model.structure
     pos, quat = with_world_row(pos), with_world_row(quat, math.quat_identity().astype(quat.dtype))
 
