@@ -175,6 +175,11 @@ def test_joint_coordinates_kind_by_kind_are_those_measured_with_every_row(float6
     assert np.all(np.abs(np.asarray(hinge)[flag.rotor_hinge]) > 1e-2), "the pose should bend every hinge"
     assert np.all(np.abs(np.asarray(euler)[flag.rotor_euler]) > 1e-2), "and every universal or gimbal hinge"
     assert not np.asarray(hinge)[~flag.rotor_hinge].any() and not np.asarray(euler)[~flag.rotor_euler].any()
+    builder = dbd.ModelBuilder()  # no joints: no kinds, empty coordinates
+    builder.add_body(mass=1.0, inertia=(0.1, 0.1, 0.1), pos=(0.0, 0.0, 1.0))
+    alone = builder.finalize()
+    empty = joints.joint_coordinates(alone, dbd.init(alone).pos, dbd.init(alone).quat)
+    assert [x.shape for x in empty] == [(0,), (0,), (0, 3), (0, 4)]
 
 
 @pytest.mark.slow  # 38 s; the tree solve landing an ant with its rotors counted stays in CI (test_tree.py)

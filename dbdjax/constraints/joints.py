@@ -194,6 +194,8 @@ def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
     (else zeros): each kind is measured with its own rows, so a hinge never computes a gimbal's
     angles."""
     structure = model.structure
+    if not structure.num_joints:
+        return tuple(jnp.zeros((0, *shape), pos.dtype) for shape in ((), (), (3,), (4,)))
     pos, quat = with_world_row(pos), with_world_row(quat, math.quat_identity().astype(quat.dtype))
 
     def measured(members, kinds):
