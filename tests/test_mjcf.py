@@ -14,7 +14,9 @@ import pytest
 import dbdjax as dbd
 from dbdjax import diagnostics
 from dbdjax import math as dm
+from dbdjax.constraints import joints as joint_rows
 from dbdjax.model import GIMBAL, JOINT_KIND_NAMES, SLIDER, UNIVERSAL
+from dbdjax.solvers import dbd as dbd_solver
 
 ASSETS = Path(__file__).parent / "assets"
 BRAX_MODELS = ("humanoid", "ant", "hopper", "walker2d", "half_cheetah")
@@ -134,19 +136,16 @@ def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced
     (`solvers.dbd.rotor_kinds`: the humanoid's hinges, and its universal and gimbal joints); the
     rows a kind lacks are inactive, so traced with every row for every joint (on the same colours)
     the steps must come out the same, to rounding."""
-    from dbdjax.constraints import joints
-    from dbdjax.solvers import dbd as solver_dbd
-
     model = dbd.load_mjcf(ASSETS / "humanoid.xml", substeps=1, iterations=2, solver=solver)
-    kinds = solver_dbd.rotor_kinds(model)
+    kinds = dbd_solver.rotor_kinds(model)
     assert [len(members) for members, _ in kinds] == [5, 5]  # universal and gimbal share their rows
     assert sorted(len({"rotor_hinge", "rotor_euler"} & rows) for _, rows in kinds) == [1, 1]  # a kind's own rotor rows
     controls = jnp.asarray(np.random.default_rng(3).uniform(-0.4, 0.4, (30, model.num_controls)))
     _, by_kind = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
-    every_row = joints.rows_in_use(model.structure)
+    every_row = joint_rows.rows_in_use(model.structure)
     for name in ("project_rotor_momentum", "rotor_excess"):
-        traced = getattr(joints, name)
-        monkeypatch.setattr(joints, name, lambda *args, traced=traced: traced(*args[:-1], every_row))
+        traced = getattr(joint_rows, name)
+        monkeypatch.setattr(joint_rows, name, lambda *args, traced=traced: traced(*args[:-1], every_row))
     _, all_rows = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
     assert bool(jnp.all(dbd.is_finite(by_kind)))
     assert float(jnp.max(jnp.abs(by_kind.ang_vel))) > 1.0, "the humanoid should really move"
@@ -158,17 +157,15 @@ def test_joint_coordinates_kind_by_kind_are_those_measured_with_every_row(float6
     """`joints.joint_coordinates` (the rotor rows' offsets and references, the rotors' energy)
     measures each kind of joint with its own rows; on a bent humanoid its hinge and gimbal angles
     are those measured with every row for every joint, and zero for the kinds that lack them."""
-    from dbdjax.constraints import joints
-
     model = dbd.load_mjcf(ASSETS / "humanoid.xml")
     rng = np.random.default_rng(5)
     start = dbd.init(model)
     turns = dm.quat_exp(jnp.asarray(rng.normal(scale=0.4, size=start.pos.shape)))
     pos, quat = start.pos, dm.quat_multiply(turns, start.quat)
-    hinge, _, euler, _ = joints.joint_coordinates(model, pos, quat)
-    monkeypatch.setattr(joints, "variants", lambda s: [(np.arange(s.num_joints), joints.rows_in_use(s))])
-    every_hinge, _, every_euler, _ = joints.joint_coordinates(model, pos, quat)
-    flag = joints.flags(model.structure)
+    hinge, _, euler, _ = joint_rows.joint_coordinates(model, pos, quat)
+    monkeypatch.setattr(joint_rows, "variants", lambda s: [(np.arange(s.num_joints), joint_rows.rows_in_use(s))])
+    every_hinge, _, every_euler, _ = joint_rows.joint_coordinates(model, pos, quat)
+    flag = joint_rows.flags(model.structure)
     assert flag.rotor_hinge.sum() == 5 and flag.rotor_euler.any(axis=-1).sum() == 5
     np.testing.assert_array_equal(np.asarray(hinge)[flag.rotor_hinge], np.asarray(every_hinge)[flag.rotor_hinge])
     np.testing.assert_array_equal(np.asarray(euler)[flag.rotor_euler], np.asarray(every_euler)[flag.rotor_euler])
@@ -178,7 +175,7 @@ def test_joint_coordinates_kind_by_kind_are_those_measured_with_every_row(float6
     builder = dbd.ModelBuilder()  # no joints: no kinds, empty coordinates
     builder.add_body(mass=1.0, inertia=(0.1, 0.1, 0.1), pos=(0.0, 0.0, 1.0))
     alone = builder.finalize()
-    empty = joints.joint_coordinates(alone, dbd.init(alone).pos, dbd.init(alone).quat)
+    empty = joint_rows.joint_coordinates(alone, dbd.init(alone).pos, dbd.init(alone).quat)
     assert [x.shape for x in empty] == [(0,), (0,), (0, 3), (0, 4)]
 
 

@@ -197,6 +197,7 @@ def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
     if not structure.num_joints:
         return tuple(jnp.zeros((0, *shape), pos.dtype) for shape in ((), (), (3,), (4,)))
     pos, quat = with_world_row(pos), with_world_row(quat, math.quat_identity().astype(quat.dtype))
+    every_flag = flags(structure)
 
     def measured(members, kinds):
         a, b = structure.joint_body_a.array[members], structure.joint_body_b.array[members]
@@ -204,7 +205,7 @@ def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
         scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
         pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 4),
                         jnp.zeros((len(a), 4, 3), pos.dtype))  # fmt: skip
-        joint, flag = jax.tree.map(lambda x: x[members], (model.joints, flags(structure)))
+        joint, flag = jax.tree.map(lambda x: x[members], (model.joints, every_flag))
         return jax.vmap(lambda joint, flag, two: _coordinates(joint, flag, two, kinds))(joint, flag, pair)
 
     return by_kind(variants(structure), measured)
