@@ -5,12 +5,14 @@ displacements would race). Constraint nodes (a joint with all its rows, a spring
 many bodies, ...) are the vertices here and share an edge when they share a dynamic body; the
 world never conflicts. Greedy colouring gives colour groups in which every body is touched at
 most once, so a whole group is projected at once with `jax.vmap` and its displacements are
-written back with no conflicts: Gauss-Seidel at the parallelism of Jacobi. The solver that uses
-these groups is `solvers/dbd.py`; it knows nothing of how they were made.
+written back with no conflicts: Gauss-Seidel at the parallelism of Jacobi. The colours' sizes
+are then evened out without changing any body's order of projections (`even_colouring`). The
+solver that uses these groups is `solvers/dbd.py`; it knows nothing of how they were made.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import numpy as np
@@ -39,6 +41,59 @@ def greedy_colouring(constraint_bodies: Sequence[Sequence[int]], num_bodies: int
     return result
 
 
+def even_colouring(constraint_bodies: Sequence[Sequence[int]], num_bodies: int, colours: Sequence[int]) -> list[int]:
+    """The sweep of `colours` (a valid colouring of the constraints, given the bodies each one
+    moves) with its colours' sizes evened out: the same number of colours, and on every body its
+    constraints projected in the same order, so a Gauss-Seidel sweep computes the same thing.
+
+    The solver pads every colour of a run to the run's largest (`solvers.dbd._Run`), so the cost of
+    a sweep is the number of colours times the largest. Greedy colouring fills the first colours
+    and leaves the last nearly empty: Brax's ant's 4 hips (all on the torso) and 4 ankles came as
+    4, 2, 1, 1, a sweep of 16 projections for 8 joints; evened, 2, 2, 2, 2.
+
+    List scheduling with deadlines: a constraint waits for those before it on each of its bodies,
+    and must be placed by the colour that leaves room for the longest chain after it; each colour
+    takes those due, then the ready ones that are due soonest, up to an even share. Returns the
+    greedy colours unchanged where that does not make the largest colour smaller.
+    """
+    count = max(colours, default=-1) + 1
+    if count < 2:
+        return list(colours)
+    on_body: list[list[tuple[int, int]]] = [[] for _ in range(num_bodies)]
+    for k, (colour, bodies) in enumerate(zip(colours, constraint_bodies, strict=True)):
+        for body in bodies:
+            if 0 <= body < num_bodies:
+                on_body[body].append((colour, k))
+    after: list[list[int]] = [[] for _ in colours]  # the constraints that wait for each one
+    waits_for = [0] * len(colours)
+    for sequence in on_body:
+        sequence.sort()
+        for (_, first), (_, second) in itertools.pairwise(sequence):
+            after[first].append(second)
+            waits_for[second] += 1
+    chain = [0] * len(colours)  # the longest chain of constraints after each one
+    for k in sorted(range(len(colours)), key=lambda k: -colours[k]):
+        chain[k] = max((chain[j] + 1 for j in after[k]), default=0)
+    due = [count - 1 - c for c in chain]
+    share = -(-len(colours) // count)
+    result = [-1] * len(colours)
+    ready = [k for k, w in enumerate(waits_for) if w == 0]
+    for colour in range(count):
+        ready.sort(key=lambda k: (due[k], colours[k], k))
+        due_now = [k for k in ready if due[k] == colour]  # every one due is ready: those before are due sooner
+        later = [k for k in ready if due[k] > colour]
+        room = max(share - len(due_now), 0)
+        taken, ready = due_now + later[:room], later[room:]
+        for k in taken:
+            result[k] = colour
+            for j in after[k]:
+                waits_for[j] -= 1
+                if waits_for[j] == 0:
+                    ready.append(j)
+    widths = np.bincount(result, minlength=count)
+    return result if widths.max() < np.bincount(colours).max() else list(colours)
+
+
 def colour_groups(
     family_bodies: Sequence[np.ndarray], num_bodies: int, classes: Sequence[int | np.ndarray] | None = None
 ) -> tuple[Colour, ...]:
@@ -47,7 +102,8 @@ def colour_groups(
     family_bodies: one (M_f, S_f) int table per family, the bodies each node moves (index
     num_bodies = the world). classes: per family, one class for all its nodes or an (M_f,) int
     array of one class per node (default: all 0); nodes of different classes never share a colour,
-    and lower classes get the lower colours. Returns the colour groups, each with its nodes per
+    and lower classes get the lower colours. Each class is coloured greedily, then evened out
+    (`even_colouring`). Returns the colour groups, each with its nodes per
     family and the gather table that writes the moved bodies back (see `Colour`).
 
     The solver projects every family (every variant of a family: the joints by kind) present in a
@@ -71,7 +127,8 @@ def colour_groups(
     first = 0
     for kind in sorted(set(node_class)):
         members = [k for k, c in enumerate(node_class) if c == kind]
-        local = greedy_colouring([family_bodies[nodes[k][0]][nodes[k][1]] for k in members], num_bodies)
+        bodies = [family_bodies[nodes[k][0]][nodes[k][1]] for k in members]
+        local = even_colouring(bodies, num_bodies, greedy_colouring(bodies, num_bodies))
         for k, colour in zip(members, local, strict=True):
             colours[k] = first + colour
         first += max(local, default=-1) + 1

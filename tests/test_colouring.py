@@ -3,6 +3,7 @@ valid Gauss-Seidel group (no body moved twice) holding one kind of joint."""
 
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 import scenes
@@ -75,3 +76,65 @@ def test_nodes_of_different_classes_never_share_a_colour_and_lower_classes_come_
         colouring.colour_groups([links], 6, classes=[0, 1])
     with pytest.raises(ValueError, match="family 0 has 5 nodes"):
         colouring.colour_groups([links], 6, classes=[np.array([0, 1])])
+
+
+def _order_on_each_body(bodies, colours, num_bodies):
+    """Per body, the constraints that move it in the order a sweep projects them."""
+    return [sorted((colours[k], k) for k, moved in enumerate(bodies) if b in moved) for b in range(num_bodies)]
+
+
+def _check_even_colouring(bodies, num_bodies):
+    greedy = colouring.greedy_colouring(bodies, num_bodies)
+    even = colouring.even_colouring(bodies, num_bodies, greedy)
+    assert max(even) == max(greedy), "the number of colours changed"
+    assert np.bincount(even).max() <= np.bincount(greedy).max()
+    order = [[k for _, k in on_body] for on_body in _order_on_each_body(bodies, even, num_bodies)]
+    assert order == [[k for _, k in on_body] for on_body in _order_on_each_body(bodies, greedy, num_bodies)]
+    for on_body in _order_on_each_body(bodies, even, num_bodies):
+        colours_here = [c for c, _ in on_body]
+        assert len(colours_here) == len(set(colours_here)), "a body moved twice in one colour"
+    return greedy, even
+
+
+def test_even_colouring_evens_the_ants_colours_and_keeps_each_bodys_order():
+    # Brax's ant: hip k on the torso (0) and thigh 2k + 1, ankle k on thigh and shin 2k + 2.
+    bodies = dbd.load_mjcf(ASSETS / "ant.xml").structure.family_bodies()[0].tolist()
+    assert bodies == [[0, 1], [1, 2], [0, 3], [3, 4], [0, 5], [5, 6], [0, 7], [7, 8]]
+    greedy, even = _check_even_colouring(bodies, 9)
+    assert np.bincount(greedy).tolist() == [4, 2, 1, 1]
+    assert np.bincount(even).tolist() == [2, 2, 2, 2]
+
+
+def test_even_colouring_keeps_each_bodys_order_on_random_graphs():
+    rng = np.random.default_rng(0)
+    evened = 0
+    for _ in range(200):
+        num_bodies = int(rng.integers(2, 12))
+        count = int(rng.integers(1, 20))
+        bodies = [rng.choice(num_bodies + 1, size=int(rng.integers(1, 4)), replace=False).tolist()
+                  for _ in range(count)]  # fmt: skip
+        greedy, even = _check_even_colouring(bodies, num_bodies)
+        evened += even != greedy
+    assert evened > 20  # the random graphs do exercise the evening
+
+
+def test_the_ant_steps_alike_with_even_and_greedy_colours(monkeypatch):
+    """Evening the colours keeps every body's projection order, so the sweep computes the same."""
+    control = 0.4 * np.sin(np.arange(20)[:, None] + np.arange(8)[None, :])
+
+    def trajectory():
+        model = dbd.load_mjcf(ASSETS / "ant.xml")
+
+        def body(state, u):
+            state = dbd.step(model, state, u)
+            return state, state.pos
+
+        return model, np.asarray(jax.jit(lambda s: jax.lax.scan(body, s, control)[1])(dbd.init(model)))
+
+    even_model, even = trajectory()
+    monkeypatch.setattr(colouring, "even_colouring", lambda bodies, num_bodies, colours: list(colours))
+    greedy_model, greedy = trajectory()
+    sizes = [[len(c.nodes[0].array) for c in m.structure.colours[:4]] for m in (even_model, greedy_model)]
+    assert sizes == [[2, 2, 2, 2], [4, 2, 1, 1]]
+    np.testing.assert_allclose(even, greedy, rtol=0, atol=1e-6)
+    assert np.ptp(even[:, 0, 2]) > 0.01  # the torso did move
