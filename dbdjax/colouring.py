@@ -102,8 +102,8 @@ def colour_groups(
     family_bodies: one (M_f, S_f) int table per family, the bodies each node moves (index
     num_bodies = the world). classes: per family, one class for all its nodes or an (M_f,) int
     array of one class per node (default: all 0); nodes of different classes never share a colour,
-    and lower classes get the lower colours. Each class is coloured greedily, then evened out
-    (`even_colouring`). Returns the colour groups, each with its nodes per
+    and lower classes get the lower colours. Each class is coloured greedily, then, where all its
+    nodes are of one family, evened out (`even_colouring`). Returns the colour groups, each with its nodes per
     family and the gather table that writes the moved bodies back (see `Colour`).
 
     The solver projects every family (every variant of a family: the joints by kind) present in a
@@ -128,7 +128,11 @@ def colour_groups(
     for kind in sorted(set(node_class)):
         members = [k for k, c in enumerate(node_class) if c == kind]
         bodies = [family_bodies[nodes[k][0]][nodes[k][1]] for k in members]
-        local = even_colouring(bodies, num_bodies, greedy_colouring(bodies, num_bodies))
+        local = greedy_colouring(bodies, num_bodies)
+        if len({nodes[k][0] for k in members}) == 1:
+            # Evened within one family only: across families (the contact groups' class) it would
+            # change which families each colour holds, and with them the solver's runs.
+            local = even_colouring(bodies, num_bodies, local)
         for k, colour in zip(members, local, strict=True):
             colours[k] = first + colour
         first += max(local, default=-1) + 1

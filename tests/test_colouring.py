@@ -138,3 +138,15 @@ def test_the_ant_steps_alike_with_even_and_greedy_colours(monkeypatch):
     assert sizes == [[2, 2, 2, 2], [4, 2, 1, 1]]
     np.testing.assert_allclose(even, greedy, rtol=0, atol=1e-6)
     assert np.ptp(even[:, 0, 2]) > 0.01  # the torso did move
+
+
+def test_colour_groups_even_a_class_of_one_family_and_leave_a_class_of_several_as_greedy():
+    """Evening across families would change which families each colour holds (the solver's runs)."""
+    legs = np.array([[0, 1], [1, 2], [0, 3], [3, 4], [0, 5], [5, 6], [0, 7], [7, 8]])  # the ant's joints
+    one_family = colouring.colour_groups([legs], 9)
+    assert [len(c.nodes[0].array) for c in one_family] == [2, 2, 2, 2]
+    hips, ankles = legs[0::2], legs[1::2]
+    two_families = colouring.colour_groups([hips, ankles], 9)
+    # Greedy, hips first: each hip a colour of its own on the torso; ankle 1 after hip 1, the
+    # others in the first colour.
+    assert [[len(nodes.array) for nodes in c.nodes] for c in two_families] == [[1, 3], [1, 1], [1, 0], [1, 0]]
