@@ -15,7 +15,6 @@ import dbdjax as dbd
 from dbdjax import diagnostics
 from dbdjax import math as dm
 from dbdjax.constraints import joints as joint_rows
-from dbdjax.constraints.rows import BodyPair
 from dbdjax.model import GIMBAL, JOINT_KIND_NAMES, SLIDER, UNIVERSAL
 from dbdjax.solvers import dbd as dbd_solver
 
@@ -152,29 +151,6 @@ def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced
     assert float(jnp.max(jnp.abs(by_kind.ang_vel))) > 1.0, "the humanoid should really move"
     for ours, reference in zip(jax.tree.leaves(by_kind), jax.tree.leaves(all_rows), strict=True):
         np.testing.assert_allclose(np.asarray(ours), np.asarray(reference), rtol=0, atol=1e-12)
-
-
-def test_the_sweeps_move_the_humanoid_alike_with_their_poses_renormalised_or_not(float64, monkeypatch):
-    """The sweeps evaluate their constraints at exp(i dtheta / 2) q without renormalising it
-    (`BodyPair.current_quats`): a product of unit quaternions, unit to rounding, so with every such
-    pose renormalised the steps come out the same, to rounding."""
-    model = dbd.load_mjcf(ASSETS / "humanoid.xml", substeps=1, iterations=2)
-    controls = jnp.asarray(np.random.default_rng(4).uniform(-0.4, 0.4, (30, model.num_controls)))
-    _, plain = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
-
-    def renormalised_quats(pair):  # (39) as the bodies are moved: exp(i dtheta / 2) q, renormalised
-        turned = [dm.quat_multiply(dm.quat_exp(dtheta), quat) for quat, dtheta in
-                  ((pair.quat_a, pair.dtheta_a), (pair.quat_b, pair.dtheta_b))]  # fmt: skip
-        return dm.quat_normalize(turned[0]), dm.quat_normalize(turned[1])
-
-    monkeypatch.setattr(BodyPair, "current_quats", renormalised_quats)
-    _, renormalised = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
-    assert bool(jnp.all(dbd.is_finite(plain)))
-    assert float(jnp.max(jnp.abs(plain.ang_vel))) > 1.0, "the humanoid should really move"
-    # Rounding, grown over 30 steps of a moving humanoid: 1.3e-12 at most (rad/s); evaluated at the
-    # linearised q + [0, dtheta / 2] q instead, 2e-4.
-    for ours, reference in zip(jax.tree.leaves(plain), jax.tree.leaves(renormalised), strict=True):
-        np.testing.assert_allclose(np.asarray(ours), np.asarray(reference), rtol=0, atol=1e-10)
 
 
 def test_joint_coordinates_kind_by_kind_are_those_measured_with_every_row(float64, monkeypatch):
