@@ -53,8 +53,8 @@ def even_colouring(constraint_bodies: Sequence[Sequence[int]], num_bodies: int, 
 
     List scheduling with deadlines: a constraint waits for those before it on each of its bodies,
     and must be placed by the colour that leaves room for the longest chain after it; each colour
-    takes those due, then the ready ones that are due soonest, up to an even share. Returns the
-    greedy colours unchanged where that does not make the largest colour smaller.
+    takes those due, then the ready ones that are due soonest, up to an even share. Returns
+    `colours` as they are where evening does not make the largest colour smaller.
     """
     count = max(colours, default=-1) + 1
     if count < 2:
@@ -103,8 +103,8 @@ def colour_groups(
     num_bodies = the world). classes: per family, one class for all its nodes or an (M_f,) int
     array of one class per node (default: all 0); nodes of different classes never share a colour,
     and lower classes get the lower colours. Each class is coloured greedily, then, where all its
-    nodes are of one family, evened out (`even_colouring`). Returns the colour groups, each with its nodes per
-    family and the gather table that writes the moved bodies back (see `Colour`).
+    nodes are of one family, evened out (`even_colouring`). Returns the colour groups, each with
+    its nodes per family and the gather table that writes the moved bodies back (see `Colour`).
 
     The solver projects every family (every variant of a family: the joints by kind) present in a
     colour as one vmapped call, so the cost of an iteration (and the size of the compiled program)

@@ -1,5 +1,6 @@
 """The colouring of the constraint graph (colouring.py, builder.colour_classes): every colour a
-valid Gauss-Seidel group (no body moved twice) holding one kind of joint."""
+valid Gauss-Seidel group (no body moved twice) holding one kind of joint, and the colours evened
+out without changing any body's order of projections."""
 
 from pathlib import Path
 
