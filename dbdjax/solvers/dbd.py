@@ -344,9 +344,11 @@ def solve(
         def residuals(members, rows):
             family = constraints.gather(all_families[0], swept[members])
             bodies = _fixed(table, family.bodies)._replace(dx=dx[family.bodies], dtheta=dtheta[family.bodies])
-            return jax.vmap(lambda params, flag, two, lam: joints.rotor_excess(params[0], flag, params[1], two, lam, h,
-                                                                               rows))(
-                family.params, family.static, bodies, multipliers[0][swept[members]])  # fmt: skip
+
+            def one_joint(params, flag, pair, lam):  # params: (joint, targets), as the joints' family holds them
+                return joints.rotor_excess(params[0], flag, params[1], pair, lam, h, rows)
+
+            return jax.vmap(one_joint)(family.params, family.static, bodies, multipliers[0][swept[members]])
 
         excess = joints.by_kind(rotor_kinds(model), residuals)
     return dx[:n], dtheta[:n], normal, excess
