@@ -102,7 +102,8 @@ class BodyPair(NamedTuple):
     def current_quats(self) -> tuple[jnp.ndarray, jnp.ndarray]:
         """Orientations at X* + dX (what the non-linear update of DBD 4.1 evaluates at)."""
         # Both sides as one (2, 4) computation, as `rotate_pair`.
-        both = integrator.displaced_quat(jnp.stack([self.quat_a, self.quat_b]), self.motion[..., 2:, :])
+        quats = jnp.stack([self.quat_a, self.quat_b])
+        both = integrator.displaced_quat(quats, self.motion[..., 2:, :], renormalise=False)
         return both[0], both[1]
 
 
