@@ -11,8 +11,9 @@ state = dbd.step(model, dbd.init(model))
 from dbdjax import _layout, diagnostics, math, render, sharding
 from dbdjax.builder import ModelBuilder
 from dbdjax.compiling import compiler_options, jit
-from dbdjax.mjcf import load_mjcf
+from dbdjax.mjcf import load_mjcf, mujoco_model
 from dbdjax.model import WORLD, Model, State
+from dbdjax.mujoco_state import state_from_mujoco, state_to_mujoco
 from dbdjax.pipeline import init, is_finite, rollout, step
 from dbdjax.trailing_batch import vmap
 
@@ -28,9 +29,12 @@ __all__ = [
     "jit",
     "load_mjcf",
     "math",
+    "mujoco_model",
     "render",
     "rollout",
     "sharding",
+    "state_from_mujoco",
+    "state_to_mujoco",
     "step",
     "vmap",
 ]

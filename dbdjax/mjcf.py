@@ -184,6 +184,17 @@ def linear_passive_world(pos, quat, vel, ang_vel, params):
 
 
 # ------------------------------------------------------------------------------------ loading
+def mujoco_model(path_or_xml: str | os.PathLike):
+    """MuJoCo's compiled `MjModel` of an MJCF file path or XML string, as `load_mjcf` reads it:
+    jointless bodies fused into their parents (MuJoCo's `fusestatic`: fewer bodies, no weld gaps),
+    so that its body i + 1 is dbdjax body i. For stepping MuJoCo beside dbdjax from one state
+    (`dbdjax.mujoco_state`)."""
+    mujoco = _import_mujoco()
+    spec = _spec(mujoco, path_or_xml)
+    spec.compiler.fusestatic = True
+    return spec.compile()
+
+
 def load_mjcf(path_or_xml: str | os.PathLike, soft_limits: bool = True, **finalize_kwargs: Any) -> Model:
     """Build a `Model` from an MJCF file path or XML string (see this module's docstring for
     what maps and how). finalize_kwargs go to `ModelBuilder.finalize` (dt defaults to the
@@ -194,9 +205,7 @@ def load_mjcf(path_or_xml: str | os.PathLike, soft_limits: bool = True, **finali
     ctrl; position: the target angle from qpos0). `model.control_range` holds ctrlrange.
     """
     mujoco = _import_mujoco()
-    spec = _spec(mujoco, path_or_xml)
-    spec.compiler.fusestatic = True  # jointless bodies join their parent: fewer bodies, no weld gaps
-    m = spec.compile()
+    m = mujoco_model(path_or_xml)
     _check_supported(mujoco, m)
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)  # poses at qpos0

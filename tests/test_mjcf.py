@@ -506,17 +506,6 @@ def test_planar_joint_keeps_a_body_in_its_plane_and_turning_about_the_normal(flo
     assert float(final.ang_vel[0, 1]) == pytest.approx(2.0, rel=1e-4)
 
 
-def _state_from_mujoco(m, d) -> dbd.State:
-    """The bodies of a MuJoCo chain (no free joint) as dbdjax's state: centres of mass, inertial
-    frames and their velocities there (world frame)."""
-    quat, velocity = np.zeros((m.nbody - 1, 4)), np.zeros((m.nbody - 1, 6))
-    for body in range(1, m.nbody):
-        mujoco.mju_mat2Quat(quat[body - 1], d.ximat[body])
-        mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, body, velocity[body - 1], 0)
-    return dbd.State(pos=jnp.asarray(d.xipos[1:]), quat=jnp.asarray(quat), vel=jnp.asarray(velocity[:, 3:]),
-                     ang_vel=jnp.asarray(velocity[:, :3]))  # fmt: skip
-
-
 @pytest.mark.parametrize("name", ["ball_armature", "gimbal_armature", "slide_armature"])
 def test_energy_counts_the_rotors_kinetic_energy_as_mujoco_does(float64, name):
     # MuJoCo's kinetic energy is 1/2 qdot^T (M + armature) qdot; dbdjax's bodies carry no rotor state,
@@ -526,14 +515,13 @@ def test_energy_counts_the_rotors_kinetic_energy_as_mujoco_does(float64, name):
     body, extra, control, _ = SCENES[name]
     option = '<option timestep="0.001"><flag energy="enable"/></option>'
     xml = f"<mujoco>{option}<worldbody>{body}</worldbody>{extra}</mujoco>"
-    m = mujoco.MjModel.from_xml_string(xml)
+    m = dbd.mujoco_model(xml)
     d = mujoco.MjData(m)
     d.ctrl[:] = control
     for _ in range(300):
         mujoco.mj_step(m, d)
-    mujoco.mj_forward(m, d)
     model = dbd.load_mjcf(xml)
-    state = _state_from_mujoco(m, d)
+    state = dbd.state_from_mujoco(model, m, d)
     energy, rotors = float(diagnostics.energy(model, state)), float(diagnostics.rotor_energy(model, state))
     print(f"\nMuJoCo {d.energy.sum():.6f} J, dbdjax {energy:.6f} J, its rotors' {rotors:.6f} J")
     assert energy == pytest.approx(d.energy.sum(), rel=1e-6, abs=1e-9)

@@ -7,7 +7,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import mujoco
-import mujoco_state
 import numpy as np
 import pytest
 import scenes
@@ -400,8 +399,8 @@ def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along
     # way to the first, most draws); 26 J and 126 J (a second solve with two sliding feet, kept, 8-13
     # draws); 9.7 J and 166 J (the sweep's solve too keeps its first solve, one draw). So every draw
     # is checked, against MuJoCo's own 10 ms step from the same state with the same control (its soft
-    # contacts, tests/mujoco_state.py): the bodies at 23.8 J, the fastest at 7.9 m/s, the total at
-    # 147 J (at dt = 1 ms: 9.8 J, 4.4 m/s, 149 J). The margin of a quarter is for two contact models
+    # contacts, `dbd.state_to_mujoco`): the bodies at 23.6 J, the fastest at 7.8 m/s, the total at
+    # 146 J (at dt = 1 ms: 10.7 J, 4.8 m/s, 148 J). The margin of a quarter is for two contact models
     # meeting one landing at this dt. The total is not bounded by the start's 165.9 J: the motors
     # work on the legs.
     # (Its rotors, armature 1 kg m^2 on every hinge, hold another 159 J: `energy` counts them
@@ -411,14 +410,15 @@ def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along
     rotors, before = float(dbd.diagnostics.rotor_energy(model, state)), float(dbd.diagnostics.energy(model, state))
     assert abs(before - rotors - 6.45) < 0.01 and abs(rotors - 159.46) < 0.05
 
-    m, d = mujoco_state.to_mujoco(ASSETS / "ant.xml", model, state)
-    total, its_rotors = mujoco_state.energies(m, d)
-    assert abs(total - before) < 0.2 and abs(its_rotors - rotors) < 0.5  # the same state
+    m = dbd.mujoco_model(ASSETS / "ant.xml")
+    d = dbd.state_to_mujoco(model, state, m)  # a fit: the state's joints are open by up to 0.23 mm
+    assert abs(dbd.diagnostics.energy(model, dbd.state_from_mujoco(model, m, d)) - before) < 0.5
     d.ctrl[:] = np.asarray(control)
     mujoco.mj_step(m, d)
-    total, its_rotors = mujoco_state.energies(m, d)
-    mujoco_bodies = total - its_rotors
-    mujoco_fastest = max(np.linalg.norm(_mujoco_body_velocity(m, d, b)[3:]) for b in range(1, m.nbody))
+    carried = dbd.state_from_mujoco(model, m, d)
+    total = float(dbd.diagnostics.energy(model, carried))
+    mujoco_bodies = total - float(dbd.diagnostics.rotor_energy(model, carried))
+    mujoco_fastest = float(jnp.max(jnp.linalg.norm(carried.vel, axis=-1)))
 
     rng = np.random.default_rng(0)
     outcomes = []
@@ -435,13 +435,6 @@ def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along
     print("\n".join(f"  {energy:.2f}, {bodies:.2f}, {fastest:.2f}" for energy, bodies, fastest in outcomes))
     for _, bodies, fastest in outcomes:
         assert bodies < 1.25 * mujoco_bodies and fastest < 1.25 * mujoco_fastest
-
-
-def _mujoco_body_velocity(m, d, body):
-    """(angular, linear) world velocity of a MuJoCo body's centre of mass, (6,)."""
-    velocity = np.zeros(6)
-    mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, body, velocity, 0)
-    return velocity
 
 
 def test_tree_solve_lands_an_ant_with_a_foot_in_the_floor_without_gaining_energy_at_four_substeps():
