@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from test_mjcf import SCENES  # small chains: slides, balls, universal and gimbal joints, armature
 
 import dbdjax as dbd
 from dbdjax import diagnostics
@@ -70,6 +71,24 @@ def test_dbdjax_counts_the_energy_of_a_mujoco_state_as_mujoco_does(float64, name
     state = dbd.state_from_mujoco(model, m, d)
     assert float(diagnostics.energy(model, state)) == pytest.approx(energy, rel=1e-9, abs=1e-9)
     assert float(diagnostics.rotor_energy(model, state)) == pytest.approx(rotors, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_the_chains_states_go_both_ways_with_the_same_energy(float64, name):
+    # Every joint kind the import maps (ball joints' quaternions, slides, the universal and gimbal
+    # joints' successive hinges) and the rotors on slides, balls and gimbals. In float64 the way
+    # back is exact to 1e-12 (measured: 2e-15 at most).
+    body, extra, _, _ = SCENES[name]
+    xml = f"<mujoco><worldbody>{body}</worldbody>{extra}</mujoco>"
+    model, m = dbd.load_mjcf(xml), dbd.mujoco_model(xml)
+    d = _random_state(m, seed=2)
+    state = dbd.state_from_mujoco(model, m, d)
+    back = dbd.state_to_mujoco(model, state, m)
+    np.testing.assert_allclose(back.qpos, d.qpos, atol=1e-12)
+    np.testing.assert_allclose(back.qvel, d.qvel, atol=1e-12)
+    energy, rotors = _mujoco_energy(m, d)
+    assert float(diagnostics.energy(model, state)) == pytest.approx(energy, rel=1e-12)
+    assert float(diagnostics.rotor_energy(model, state)) == pytest.approx(rotors, rel=1e-12, abs=1e-15)
 
 
 def test_state_to_mujoco_refuses_a_batch_and_another_files_mujoco_model():
