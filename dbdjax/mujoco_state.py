@@ -17,6 +17,7 @@ kinetic energy of the part the joints cannot carry, made least. On a state the j
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -77,6 +78,10 @@ def state_to_mujoco(model: Model, state: State, m, d=None):
         mujoco.mj_integratePos(m, d.qpos, step, 1.0)
         if np.max(np.abs(step)) < _CONVERGED:
             break
+    else:
+        last = float(np.max(np.abs(step)))
+        warnings.warn(f"state_to_mujoco: the pose fit did not converge in {_MAX_ITERATIONS} Gauss-Newton steps (the "
+                      f"last moved a coordinate by {last:.1e}): qpos is where it stopped", stacklevel=2)  # fmt: skip
     linear, angular = _jacobians(mujoco, m, d)
     rotor_rows, rotor_rates = _rotors(mujoco, m, linear, angular, pos, vel, ang_vel)
     rows = np.concatenate([weighted(linear, angular), rotor_rows])

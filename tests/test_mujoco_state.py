@@ -102,3 +102,13 @@ def test_state_to_mujoco_refuses_a_batch_and_another_files_mujoco_model():
         dbd.state_to_mujoco(model, state, unfused)
     with pytest.raises(ValueError, match="mujoco_model"):
         dbd.state_from_mujoco(model, unfused, mujoco.MjData(unfused))
+
+
+def test_state_to_mujoco_warns_where_its_pose_fit_does_not_converge(monkeypatch):
+    # Two Gauss-Newton steps from qpos0 are not enough for a state 0.4 rad away on every dof.
+    model = dbd.load_mjcf(MODELS["humanoid"])
+    m = dbd.mujoco_model(MODELS["humanoid"])
+    state = dbd.state_from_mujoco(model, m, _random_state(m, seed=3))
+    monkeypatch.setattr(dbd.mujoco_state, "_MAX_ITERATIONS", 2)
+    with pytest.warns(UserWarning, match="the pose fit did not converge in 2 Gauss-Newton steps"):
+        dbd.state_to_mujoco(model, state, m)
