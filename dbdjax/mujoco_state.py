@@ -65,9 +65,11 @@ def state_to_mujoco(model: Model, state: State, m, d=None):
     principal = np.sqrt(np.maximum(np.asarray(model.bodies.inertia, np.float64), 0.0))
     spin = principal[:, :, None] * np.stack([host_math.to_matrix(q).T for q in quat])  # (N, 3, 3)
 
-    def weighted(linear, angular):  # (N, 3, ...) each, stacked as the fit's rows
-        rows = np.concatenate([mass[..., None] * linear if linear.ndim == 3 else mass * linear,
-                               np.einsum("nij,nj...->ni...", spin, angular)], axis=1)  # fmt: skip
+    def weighted(linear, angular):
+        """The fit's rows (6 N, ...) of per-body linear and angular parts (N, 3, ...): Jacobians
+        (..., = nv) or errors and velocities (no trailing axis)."""
+        scale = mass.reshape((-1, 1) + (1,) * (linear.ndim - 2))
+        rows = np.concatenate([scale * linear, np.einsum("nij,nj...->ni...", spin, angular)], axis=1)
         return rows.reshape((-1,) + rows.shape[2:])
 
     d.qpos[:] = _free_bodies_placed(mujoco, m, m.qpos0.copy(), pos, quat)
