@@ -23,9 +23,7 @@ Row by kind:
   (the dual basis of the hinge axes), so its impulse is a generalised force on that hinge alone.
 Every kind: armature (rotor inertia on the joint's coordinates, MuJoCo's armature), one implicit
   spring row per degree of freedom with k h^2 = armature toward the coordinate's inertial
-  prediction, less what a torque actuator on it drives (`ModelBuilder.add_armature`). In a hinge's
-  drive row's place, a drive without a torque limit (joint damping) steps together with the
-  hinge's rotor row, as one block (`_rotor_and_drive`; the rotor row has taken its own step).
+  prediction, less what a torque actuator on it drives (`ModelBuilder.add_armature`).
 Rotors, drives and motors go first so that the hard rows, and the point block last of all, have the
 last word.
 """
