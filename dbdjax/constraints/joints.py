@@ -430,39 +430,6 @@ def rotor_rows(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair,
     return error, jnp.eye(3, dtype=error.dtype)
 
 
-def _rotor_and_drive(pair: BodyPair, hold: row.PointHold, axis, response: row.AngularResponse, rotor_err, drive_err,
-                     multipliers: tuple, armature, drive: tuple, relaxation, active, h: float):  # fmt: skip
-    """One step of a hinge's rotor row and drive row together: two springs on one coordinate along
-    one direction (k h^2 = armature toward the rotor's prediction; k h^2, nu h toward the drive's
-    target), with the held response w and slope of `rows.angular_row(..., held_step=True)`. Per
-    unit of their summed step S, each row's residual r_i = lambda_i + k_i h^2 c_i (+ nu h drift)
-    moves by K_i w (K_i = k_i h^2 + nu_i h), so the block's solution is S = -(r_r + r_d) /
-    (1 + (K_r + K_d) w) and step_i = -r_i - K_i w S: DBD 8.1's spring rule for two rows at once.
-
-    Why: stepped one after the other, a drive on a light body with a heavy rotor converged in tens
-    of iterations. The drive's damping stopped the light body, the rotor row pushed it back, a
-    little less each time: Brax's ant (joint damping 1, armature 1 kg m^2, legs of about 1/300 of
-    that) in the air drifted 0.11 rad from MuJoCo in 0.1 s at 4 iterations (0.011 at 64); one
-    light hinge on the world, its rate 2 rad/s, was stopped within 0.1 s, where the rotor's time
-    constant armature / damping is 1 s. multipliers: (lambda_rotor, lambda_drive); drive: (k h^2,
-    nu h). Returns (pair, lambda_rotor, lambda_drive, hold)."""
-    stiffness_h2, damping_h = drive
-    inverse_mass = response.held_mass
-    slope = math.dot(response.point_impulse, hold.gap)  # the held slope, as `rows.angular_row` takes it
-    drift = math.dot(axis, row.relative_turn(pair, h))
-    rotor_residual = multipliers[0] + armature * (rotor_err + slope)
-    drive_residual = multipliers[1] + stiffness_h2 * (drive_err + slope) + damping_h * drift
-    solvable = active & (inverse_mass > 0.0)
-    drive_compliance = stiffness_h2 + damping_h
-    total = -(rotor_residual + drive_residual) / (1.0 + (armature + drive_compliance) * inverse_mass)
-    rotor_step = jnp.where(solvable, relaxation * (-rotor_residual - armature * inverse_mass * total), 0.0)
-    drive_step = jnp.where(solvable, relaxation * (-drive_residual - drive_compliance * inverse_mass * total), 0.0)
-    step = rotor_step + drive_step
-    pair = pair._replace(motion=pair.motion + step * response.motion)
-    hold = hold._replace(impulse=hold.impulse + step * response.point_impulse)
-    return pair, multipliers[0] + rotor_step, multipliers[1] + drive_step, hold
-
-
 def slider_rotor_row(joint: Joints, flag: JointFlags, target: Targets, pair: BodyPair, h: float):
     """A slider's rotor row at the pair's configuration: (error (`rotor_error`), world axis, arm_a,
     arm_b), the travel measured from its value at X* (`slider_travel`)."""
@@ -838,18 +805,9 @@ def project(
     torque_bound = joint.drive_max_torque * h**2
     if "hinge_drive" in rows:
         error = math.wrap_angle(hinge_angle_now(pair) - target.drive[0])
-        drive_active = flag.hinge_drive
-        if "rotor_hinge" in rows:  # a drive (joint damping) and a rotor on one hinge: one block
-            blocked = flag.hinge_drive & flag.rotor_hinge & jnp.isinf(torque_bound)
-            change = math.wrap_angle(hinge_angle_now(pair) - _hinge_rotor_reference(joint, target, pair))
-            pair, lam[ROTOR], lam[DRIVE], hold = _rotor_and_drive(
-                pair, hold, hinge_axis, hinge_response.times(-1.0), rotor_error(joint, target, 0, change, h), error,
-                (lam[ROTOR], lam[DRIVE]), joint.armature[0], (stiffness_h2, damping_h), xi, blocked, h,
-            )  # fmt: skip
-            drive_active = flag.hinge_drive & ~blocked
         pair, lam[DRIVE], hold = row.angular_row(
             pair, -hinge_axis, error, lam[DRIVE],
-            row.spring(xi, drive_active, stiffness_h2, damping_h, torque_bound), h, hold,
+            row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h, hold,
             response=hinge_response.times(-1.0),
         )  # fmt: skip
     if "ball_drive" in rows:
