@@ -61,15 +61,15 @@ def state_to_mujoco(model: Model, state: State, m, d=None):
                          f"({model.num_bodies}, 3); index the batch first")  # fmt: skip
     d = mujoco.MjData(m) if d is None else d
     mass = np.sqrt(np.maximum(np.asarray(model.bodies.mass, np.float64), 0.0))[:, None]  # (N, 1)
-    # |spin w|^2 = w . I w with I a body's world inertia R diag(I_0) R^T: spin = diag(sqrt I_0) R^T
+    # |root w|^2 = w . I w with I a body's world inertia R diag(I_0) R^T: root = diag(sqrt I_0) R^T
     principal = np.sqrt(np.maximum(np.asarray(model.bodies.inertia, np.float64), 0.0))
-    spin = principal[:, :, None] * np.stack([host_math.to_matrix(q).T for q in quat])  # (N, 3, 3)
+    inertia_root = principal[:, :, None] * np.stack([host_math.to_matrix(q).T for q in quat])  # (N, 3, 3)
 
     def weighted(linear, angular):
         """The fit's rows (6 N, ...) of per-body linear and angular parts (N, 3, ...): Jacobians
         (..., = nv) or errors and velocities (no trailing axis)."""
         scale = mass.reshape((-1, 1) + (1,) * (linear.ndim - 2))
-        rows = np.concatenate([scale * linear, np.einsum("nij,nj...->ni...", spin, angular)], axis=1)
+        rows = np.concatenate([scale * linear, np.einsum("nij,nj...->ni...", inertia_root, angular)], axis=1)
         return rows.reshape((-1,) + rows.shape[2:])
 
     d.qpos[:] = _free_bodies_placed(mujoco, m, m.qpos0.copy(), pos, quat)
@@ -155,6 +155,7 @@ def _rotors(mujoco, m, linear, angular, pos, vel, ang_vel) -> tuple[np.ndarray, 
             rate[sliding] = np.linalg.lstsq(linear[body - 1][:, sliding], relative_drift - turned, rcond=None)[0]
         for k in own[(m.dof_armature[own] > 0.0) & (kind[own] != free)]:
             weight = np.sqrt(m.dof_armature[k])
-            rows.append(weight * np.eye(m.nv)[k])
+            rows.append(np.zeros(m.nv))
+            rows[-1][k] = weight
             rates.append(weight * rate[k])
     return np.reshape(rows, (-1, m.nv)), np.asarray(rates)

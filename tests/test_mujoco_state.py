@@ -29,7 +29,9 @@ def _random_state(m, seed: int) -> mujoco.MjData:
 
 
 def _mujoco_energy(m, d) -> tuple[float, float]:
-    """(kinetic in joint space with armature plus gravity's potential, the armature's share) J."""
+    """(kinetic in joint space with armature plus gravity's potential, the armature's share) J:
+    what `diagnostics.energy` counts. Not MuJoCo's own `d.energy` (flag `energy`): its potential
+    also holds the joint springs' (humanoid.xml, half_cheetah.xml), which `energy` leaves out."""
     momentum = np.zeros(m.nv)
     mujoco.mj_forward(m, d)
     mujoco.mj_mulM(m, d, momentum, d.qvel)
