@@ -526,3 +526,84 @@ def test_energy_counts_the_rotors_kinetic_energy_as_mujoco_does(float64, name):
     print(f"\nMuJoCo {d.energy.sum():.6f} J, dbdjax {energy:.6f} J, its rotors' {rotors:.6f} J")
     assert energy == pytest.approx(d.energy.sum(), rel=1e-6, abs=1e-9)
     assert rotors > 0.2  # measured 0.22-2.4 J: far past the tolerance above
+
+
+def _armature_and_damping(free: bool) -> str:
+    """A light leg (40 g, 0.4 m) on a hinge with armature 1 kg m^2 and damping 1 N m s, on a base
+    held by the world or free, without gravity."""
+    root = "<freejoint/>" if free else ""
+    return f"""<mujoco><option timestep="0.001" gravity="0 0 0"/><worldbody>
+      <body pos="0 0 5">{root}<geom type="sphere" size="0.25" mass="0.5"/>
+        <body pos="0.3 0 0"><joint type="hinge" axis="0 0 1" armature="1" damping="1"/>
+          <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.04" mass="0.04"/></body></body>
+    </worldbody></mujoco>"""
+
+
+@pytest.mark.parametrize("free", [False, True])
+def test_a_light_hinge_with_a_rotor_and_damping_slows_as_in_mujoco_at_four_iterations(float64, free):
+    # The rotor's time constant armature / damping is 1 s: from 2 rad/s MuJoCo's hinge is at 1.81
+    # rad/s after 0.1 s. With the drive's damping row and the rotor row stepped one after the other
+    # it was stopped (0.05 rad/s; 64 iterations were needed to match); the drive stepped beside its
+    # rotor as one block (`rows.spring_row_beside_rotor`) matches to 1e-6 rad/s at 4 iterations.
+    xml = _armature_and_damping(free)
+    m = dbd.mujoco_model(xml)
+    d = mujoco.MjData(m)
+    d.qvel[-1] = 2.0
+    if free:
+        d.qvel[:6] = [0.1, 0.2, 0.0, 0.3, -0.2, 0.5]
+    model = dbd.load_mjcf(xml, iterations=4)
+    final, _ = jax.jit(lambda s: dbd.rollout(model, s, steps=100))(dbd.state_from_mujoco(model, m, d))
+    for _ in range(100):
+        mujoco.mj_step(m, d)
+    ours = dbd.state_to_mujoco(model, final, m)
+    assert d.qvel[-1] == pytest.approx(1.81, abs=0.005)
+    assert abs(ours.qvel[-1] - d.qvel[-1]) < 1e-4 and abs(ours.qpos[-1] - d.qpos[-1]) < 1e-5
+
+
+def test_brax_ant_in_the_air_follows_mujoco_at_four_iterations(float64):
+    # Brax's ant (joint damping 1, armature 1 on every hinge) 5 m up, its hinges in the middle half
+    # of their ranges, random velocities, 0.1 s at dt = 1 ms: the largest hinge angle gap to
+    # MuJoCo 0.0014 rad (0.11 rad with its drive and rotor rows stepped one after the other).
+    xml = ASSETS / "ant.xml"
+    m = dbd.mujoco_model(xml)
+    m.opt.timestep = 0.001
+    rng = np.random.default_rng(1)
+    qpos, turn = m.qpos0.copy(), np.zeros(m.nv)
+    turn[3:6] = rng.uniform(-0.5, 0.5, 3)
+    mujoco.mj_integratePos(m, qpos, turn, 1.0)
+    for j in range(1, m.njnt):
+        low, high = m.jnt_range[j]
+        qpos[m.jnt_qposadr[j]] = 0.5 * (low + high) + rng.uniform(-0.25, 0.25) * (high - low)
+    qpos[2] += 5.0
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = qpos, 0.5 * rng.standard_normal(m.nv)
+    model = dbd.load_mjcf(xml, dt=0.001, iterations=4)
+    final, _ = jax.jit(lambda s: dbd.rollout(model, s, steps=100))(dbd.state_from_mujoco(model, m, d))
+    for _ in range(100):
+        mujoco.mj_step(m, d)
+    assert d.ncon == 0
+    gap = np.max(np.abs(dbd.state_to_mujoco(model, final, m).qpos[7:] - d.qpos[7:]))
+    assert gap < 0.005, gap
+
+
+def test_a_saturated_position_servo_beside_a_rotor_turns_a_light_hinge_as_in_mujoco(float64):
+    # The drive's step clamped to its bound (a position actuator's forcerange) and the rotor's taken
+    # given the clamped one (`rows.spring_row_beside_rotor`): the light leg of
+    # `_armature_and_damping` without damping, driven toward 1 rad (kp 5, kv 1) from 2 rad/s, the
+    # servo's 3 N m clamped to 0.3 N m throughout: MuJoCo's rate after 0.1 s is 2.02993 rad/s.
+    xml = _armature_and_damping(free=False).replace(' damping="1"', ' name="hinge"').replace(
+        "</mujoco>",
+        '<actuator><position joint="hinge" kp="5" kv="1" forcelimited="true" forcerange="-0.3 0.3"/></actuator>'
+        "</mujoco>",
+    )
+    m = dbd.mujoco_model(xml)
+    d = mujoco.MjData(m)
+    d.qvel[-1], d.ctrl[:] = 2.0, 1.0
+    model = dbd.load_mjcf(xml, iterations=4)
+    controls = jnp.ones((100, model.num_controls))
+    final, _ = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.state_from_mujoco(model, m, d))
+    for _ in range(100):
+        mujoco.mj_step(m, d)
+        assert d.actuator_force[0] == pytest.approx(0.3)  # saturated throughout
+    ours = dbd.state_to_mujoco(model, final, m)
+    assert abs(ours.qvel[-1] - d.qvel[-1]) < 1e-5 and abs(ours.qpos[-1] - d.qpos[-1]) < 1e-6

@@ -766,6 +766,23 @@ def project(
     def rotor_rule(k, active):  # a spring row with k h^2 = armature, undamped
         return row.spring(xi, active, joint.armature[k], 0.0)
 
+    # Drive (DBD 9): an implicit angular spring/damper toward the control target with the torque
+    # limit (114). Hinge: the angle about the axle, wrapped to (-pi, pi]. Ball: the rotation
+    # vector of E = X T^-1 (X the relative rotation from rest, T = exp(target)) in world axes.
+    # Universal and gimbal: one spring row per hinge angle t_k toward its target, along g_k (DBD 9
+    # per hinge, as MuJoCo's per-dof stiffness and damping); the universal's third has g = 0.
+    stiffness_h2, damping_h = joint.drive_stiffness * h**2, joint.drive_damping * h
+    torque_bound = joint.drive_max_torque * h**2
+    hinge_drive = row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound)
+
+    def euler_drive(k):
+        stiffness, damping = joint.axis_stiffness[k] * h**2, joint.axis_damping[k] * h
+        return row.spring(xi, flag.euler_drive, stiffness, damping, torque_bound)
+
+    # A coordinate with both a rotor and a drive (MuJoCo's armature and joint damping) steps the
+    # two as one block (`rows.spring_row_beside_rotor`): one after the other, a light body's drive
+    # and its heavy rotor undid each other's steps for tens of iterations.
+    hinge_block, euler_block = {"rotor_hinge", "hinge_drive"} <= rows, {"rotor_euler", "euler_drive"} <= rows
     if "rotor_hinge" in rows:
         change = math.wrap_angle(hinge_angle_now(pair) - _hinge_rotor_reference(joint, target, pair))
         error = rotor_error(joint, target, 0, change, h)
@@ -773,6 +790,12 @@ def project(
             pair, -hinge_axis, error, lam[ROTOR], rotor_rule(0, flag.rotor_hinge), h, hold, held_step=True,
             response=hinge_response.times(-1.0),
         )  # fmt: skip
+        if hinge_block:
+            error = math.wrap_angle(hinge_angle_now(pair) - target.drive[0])
+            pair, lam[ROTOR], lam[DRIVE], hold = row.spring_row_beside_rotor(
+                pair, -hinge_axis, error, (lam[ROTOR], lam[DRIVE]), joint.armature[0], flag.rotor_hinge,
+                hinge_drive, h, hold, hinge_response.times(-1.0),
+            )  # fmt: skip
     if "rotor_slider" in rows:
         error, axis, arm_a, arm_b = slider_rotor_row(joint, flag, target, pair, h)
         pair, lam[ROTOR] = row.positional_row(
@@ -797,19 +820,18 @@ def project(
                 pair, -directions[k], error, lam[ROTOR + k], rotor_rule(k, flag.rotor_euler[k]), h, hold,
                 held_step=True, response=euler_response(k, -1.0),
             )  # fmt: skip
+            if euler_block:
+                error = math.wrap_angle(euler_angles_now(pair)[k] - target.drive[k])
+                pair, lam[ROTOR + k], lam[DRIVE + k], hold = row.spring_row_beside_rotor(
+                    pair, -directions[k], error, (lam[ROTOR + k], lam[DRIVE + k]), joint.armature[k],
+                    flag.rotor_euler[k], euler_drive(k), h, hold, euler_response(k, -1.0),
+                )  # fmt: skip
 
-    # Drive (DBD 9): an implicit angular spring/damper toward the control target with the torque
-    # limit (114). Hinge: the angle about the axle, wrapped to (-pi, pi]. Ball: the rotation
-    # vector of E = X T^-1 (X the relative rotation from rest, T = exp(target)) in world axes.
-    stiffness_h2, damping_h = joint.drive_stiffness * h**2, joint.drive_damping * h
-    torque_bound = joint.drive_max_torque * h**2
-    if "hinge_drive" in rows:
+    if "hinge_drive" in rows and not hinge_block:
         error = math.wrap_angle(hinge_angle_now(pair) - target.drive[0])
         pair, lam[DRIVE], hold = row.angular_row(
-            pair, -hinge_axis, error, lam[DRIVE],
-            row.spring(xi, flag.hinge_drive, stiffness_h2, damping_h, torque_bound), h, hold,
-            response=hinge_response.times(-1.0),
-        )  # fmt: skip
+            pair, -hinge_axis, error, lam[DRIVE], hinge_drive, h, hold, response=hinge_response.times(-1.0)
+        )
     if "ball_drive" in rows:
         error = ball_drive_error(joint, target, *pair.current_quats())
         pair, kappa, hold = row.angular_spring(
@@ -817,16 +839,12 @@ def project(
             flag.ball_drive, h, hold,
         )  # fmt: skip
         lam[DRIVE : DRIVE + 3] = list(kappa)
-    if "euler_drive" in rows:
-        # One spring row per hinge angle t_k toward its target, along g_k (DBD 9 per hinge, as
-        # MuJoCo's per-dof stiffness and damping). The universal's third row has g = 0: no step.
+    if "euler_drive" in rows and not euler_block:
         for k in range(3):
-            angles, directions = euler_angles_now(pair), euler_directions
-            error = math.wrap_angle(angles[k] - target.drive[k])
+            error = math.wrap_angle(euler_angles_now(pair)[k] - target.drive[k])
             pair, lam[DRIVE + k], hold = row.angular_row(
-                pair, -directions[k], error, lam[DRIVE + k],
-                row.spring(xi, flag.euler_drive, joint.axis_stiffness[k] * h**2, joint.axis_damping[k] * h,
-                           torque_bound), h, hold, response=euler_response(k, -1.0),
+                pair, -euler_directions[k], error, lam[DRIVE + k], euler_drive(k), h, hold,
+                response=euler_response(k, -1.0),
             )  # fmt: skip
 
     # Motor: the relative speed along the axle or slide axis, force-limited (SI 2.3.6, 2.4.6).
