@@ -23,7 +23,9 @@ Row by kind:
   (the dual basis of the hinge axes), so its impulse is a generalised force on that hinge alone.
 Every kind: armature (rotor inertia on the joint's coordinates, MuJoCo's armature), one implicit
   spring row per degree of freedom with k h^2 = armature toward the coordinate's inertial
-  prediction, less what a torque actuator on it drives (`ModelBuilder.add_armature`).
+  prediction, less what a torque actuator on it drives (`ModelBuilder.add_armature`). A drive on a
+  coordinate with armature (MuJoCo's joint damping beside its armature) steps right after that
+  rotor row, as one block with it (`rows.spring_row_beside_rotor`).
 Rotors, drives and motors go first so that the hard rows, and the point block last of all, have the
 last word.
 """
