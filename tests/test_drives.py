@@ -159,3 +159,29 @@ def test_slider_motor_lifts_at_its_speed_or_sinks_when_too_weak(max_force):
         np.testing.assert_allclose(velocity[-10:], 0.5, rtol=1e-4)
     else:
         np.testing.assert_allclose(acceleration, max_force - g, rtol=1e-4)
+
+
+@pytest.mark.parametrize("kind", ["hinge", "ball"])
+def test_a_saturated_drive_beside_a_rotor_turns_a_light_body_at_its_bound_over_body_plus_rotor(float64, kind):
+    # A light sphere (I = 1.6e-4 kg m^2) on a joint at its centre with armature 1, spinning about z at
+    # 1 rad/s, driven toward 3 rad about z (stiffness 100, damping 1): the drive asks 300 N m and is
+    # clamped to 0.5 N m, so the spin rises at 0.5 / (I + 1) rad/s^2. The drive steps beside its rotor
+    # as one block (`rows.spring_row_beside_rotor`, `rows.angular_spring_beside_rotor`): its clamped
+    # step, then the rotor's share given it.
+    radius, mass, armature, bound = 0.1, 0.04, 1.0, 0.5
+    inertia = 0.4 * mass * radius**2
+    b = dbd.ModelBuilder(gravity=(0, 0, 0))
+    ball = b.add_body(pos=(0, 0, 0), mass=mass, inertia=(inertia,) * 3, ang_vel=(0, 0, 1.0))
+    if kind == "hinge":
+        joint = b.add_hinge_joint(dbd.WORLD, ball, anchor=(0, 0, 0), axis=(0, 0, 1))
+    else:
+        joint = b.add_ball_joint(dbd.WORLD, ball, anchor=(0, 0, 0))
+    b.add_drive(joint, stiffness=100.0, damping=1.0, max_torque=bound)
+    b.add_armature(joint, armature)
+    model = b.finalize(dt=1e-3, iterations=4)
+    target = [3.0] if kind == "hinge" else [0.0, 0.0, 3.0]
+    final, _ = run(model, target, seconds=0.5)
+    spin = np.asarray(final.ang_vel[0])
+    expected = 1.0 + bound * 0.5 / (inertia + armature)
+    print(f"\n{kind}: spin after 0.5 s {spin}, 1 + tau_max t / (I + I_r) = {expected:.6f}")
+    assert abs(spin[2] - expected) < 1e-6 and np.max(np.abs(spin[:2])) < 1e-9

@@ -533,30 +533,89 @@ def angular_spring(
     c - G^T K^-1 g with the point's open gap g, as in `angular_row`.
     Returns the moved pair, the new kappa and the hold.
     """
-    inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b  # (113)
-    if hold is not None and held_step:
-        opens = math.skew(hold.arm_a) @ pair.inv_inertia_a + math.skew(hold.arm_b) @ pair.inv_inertia_b
-        inverse_inertia = inverse_inertia - opens.T @ hold.solve @ opens
-        error = error - math.matvec(opens.T, math.matvec(hold.solve, hold.gap))
+    inverse_inertia, slope = angular_spring_response(pair, hold if held_step else None)
     drift = relative_turn(pair, h)
-    residual = multiplier + stiffness_h2 * error + damping_h * drift
+    residual = multiplier + stiffness_h2 * (error + slope) + damping_h * drift
     system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
     candidate = multiplier - relaxation * math.matvec(math.inverse3(system), residual)
+    candidate, _ = _bounded_torque(candidate, bound)
+    step = jnp.where(active, candidate - multiplier, 0.0)
+    moved, hold = _turned_by_torque(pair, hold, step)
+    return moved, multiplier + step, hold
+
+
+def angular_spring_response(pair: BodyPair, hold: PointHold | None) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(W (3, 3), slope (3,)): an `angular_spring`'s response W = I_a^-1 + I_b^-1 (113) and its
+    error's shift, 0; with the point of `hold` held, W - G^T K^-1 G and -G^T K^-1 g (the held
+    step of `angular_spring`)."""
+    inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b  # (113)
+    if hold is None:
+        return inverse_inertia, jnp.zeros(3, inverse_inertia.dtype)
+    opens = math.skew(hold.arm_a) @ pair.inv_inertia_a + math.skew(hold.arm_b) @ pair.inv_inertia_b
+    held = inverse_inertia - opens.T @ hold.solve @ opens
+    return held, -math.matvec(opens.T, math.matvec(hold.solve, hold.gap))
+
+
+def _bounded_torque(candidate: jnp.ndarray, bound) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(kappa within |kappa| <= bound (114), whether it was cut); bound inf: unlimited."""
     direction, size = math.safe_normalize(candidate)
     limited = jnp.isfinite(bound)  # an unlimited drive stores bound = inf: keep inf out of the products
     finite_bound = jnp.where(limited, bound, 0.0)
-    candidate = jnp.where(limited & (size > finite_bound), finite_bound * direction, candidate)  # (114)
-    step = jnp.where(active, candidate - multiplier, 0.0)
+    cut = limited & (size > finite_bound)
+    return jnp.where(cut, finite_bound * direction, candidate), cut
+
+
+def _turned_by_torque(pair: BodyPair, hold: PointHold | None, step: jnp.ndarray):
+    """The pair moved by a torque step kappa (3,) (a by -I_a^-1 kappa, b by +I_b^-1 kappa), with
+    the point of `hold` held: (moved pair, hold with the point impulse added)."""
     moved = pair.moved_by(
         dtheta_a=-math.matvec(pair.inv_inertia_a, step), dtheta_b=math.matvec(pair.inv_inertia_b, step)
     )
-    if hold is not None:  # kappa turns a by -I_a^-1 kappa and b by +I_b^-1 kappa
+    if hold is not None:
         point_impulse, _ = point_impulses(
             hold, -math.matvec(pair.inv_inertia_a, step), -math.matvec(pair.inv_inertia_b, step)
         )
         moved = apply_point_impulse(moved, hold.arm_a, hold.arm_b, point_impulse)
         hold = hold._replace(impulse=hold.impulse + point_impulse)
-    return moved, multiplier + step, hold
+    return moved, hold
+
+
+def angular_spring_beside_rotor(
+    pair: BodyPair,
+    error: jnp.ndarray,
+    multipliers: tuple[jnp.ndarray, jnp.ndarray],
+    relaxation: jnp.ndarray,
+    stiffness_h2: jnp.ndarray,
+    damping_h: jnp.ndarray,
+    bound: jnp.ndarray,
+    active: jnp.ndarray,
+    armature: jnp.ndarray,
+    rotor_active: jnp.ndarray,
+    h: float,
+    hold: PointHold,
+) -> tuple[BodyPair, jnp.ndarray, jnp.ndarray, PointHold]:
+    """`spring_row_beside_rotor` for a ball joint: its three-axis drive (`angular_spring`)
+    projected right after its rotor rows (`angular_spring(..., held_step=True)` with k h^2 =
+    armature), the two as one block from the rotor's solved residual. With the held response W
+    and K_r = armature, K_s = k h^2 + nu h, the bodies move by S = -(1 + (K_r + K_s) W)^-1 r_s, the
+    drive's kappa by (1 + K_r W) S, the rotor's by -K_r W S; where |kappa| passes its bound
+    (114) the drive's step is cut and S = (1 + K_r W)^-1 (the cut step). Without a rotor
+    (rotor_active False) this is `angular_spring`'s step. multipliers: (kappa_rotor (3,),
+    kappa_drive (3,)). Returns (moved pair, kappa_rotor, kappa_drive, hold)."""
+    plain, _ = angular_spring_response(pair, None)
+    held, held_slope = angular_spring_response(pair, hold)
+    inverse_inertia = jnp.where(rotor_active, held, plain)
+    slope = jnp.where(rotor_active, held_slope, 0.0)
+    residual = multipliers[1] + stiffness_h2 * (error + slope) + damping_h * relative_turn(pair, h)
+    rotor_part = jnp.eye(3, dtype=error.dtype) + jnp.where(rotor_active, armature, 0.0) * inverse_inertia
+    system = rotor_part + (stiffness_h2 + damping_h) * inverse_inertia
+    moved_by = -relaxation * math.matvec(math.inverse3(system), residual)
+    candidate, cut = _bounded_torque(multipliers[1] + math.matvec(rotor_part, moved_by), bound)
+    drive_step = jnp.where(active, candidate - multipliers[1], 0.0)
+    moved_by = jnp.where(cut, math.matvec(math.inverse3(rotor_part), drive_step), moved_by)
+    moved_by = jnp.where(active, moved_by, 0.0)
+    moved, hold = _turned_by_torque(pair, hold, moved_by)
+    return moved, multipliers[0] + moved_by - drive_step, multipliers[1] + drive_step, hold
 
 
 def angular_block(
