@@ -788,7 +788,8 @@ def project(
         return row.spring(xi, flag.euler_drive, stiffness, damping, torque_bound)
 
     # A coordinate with both a rotor and a drive (MuJoCo's armature and joint damping) steps the
-    # two as one block (`rows.spring_row_beside_rotor`): one after the other, a light body's drive
+    # drive right after the rotor, the two as one block (`rows.spring_row_beside_rotor`; a ball's
+    # three axes: `rows.angular_spring_beside_rotor`): one after the other, a light body's drive
     # and its heavy rotor undid each other's steps for tens of iterations.
     hinge_block, euler_block = {"rotor_hinge", "hinge_drive"} <= rows, {"rotor_euler", "euler_drive"} <= rows
     ball_block = {"rotor_ball", "ball_drive"} <= rows

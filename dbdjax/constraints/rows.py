@@ -545,9 +545,9 @@ def angular_spring(
 
 
 def angular_spring_response(pair: BodyPair, hold: PointHold | None) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(W (3, 3), slope (3,)): an `angular_spring`'s response W = I_a^-1 + I_b^-1 (113) and its
-    error's shift, 0; with the point of `hold` held, W - G^T K^-1 G and -G^T K^-1 g (the held
-    step of `angular_spring`)."""
+    """(W (3, 3), slope (3,)): the response of an `angular_spring` and the shift of its error.
+    hold None: W = I_a^-1 + I_b^-1 (113), no shift. With the point of `hold` held (its held step):
+    W - G^T K^-1 G and -G^T K^-1 g, g the point's open gap."""
     inverse_inertia = pair.inv_inertia_a + pair.inv_inertia_b  # (113)
     if hold is None:
         return inverse_inertia, jnp.zeros(3, inverse_inertia.dtype)
