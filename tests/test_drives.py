@@ -167,7 +167,8 @@ def test_a_saturated_drive_beside_a_rotor_turns_a_light_body_at_its_bound_over_b
     # 1 rad/s, driven toward 3 rad about z (stiffness 100, damping 1): the drive asks 300 N m and is
     # clamped to 0.5 N m, so the spin rises at 0.5 / (I + 1) rad/s^2. The drive steps beside its rotor
     # as one block (`rows.spring_row_beside_rotor`, `rows.angular_spring_beside_rotor`): its clamped
-    # step, then the rotor's share given it.
+    # step, then the rotor's share given it. A guard of the bound: the rows stepped one after the
+    # other gave the same.
     radius, mass, armature, bound = 0.1, 0.04, 1.0, 0.5
     inertia = 0.4 * mass * radius**2
     b = dbd.ModelBuilder(gravity=(0, 0, 0))

@@ -607,7 +607,8 @@ def test_a_saturated_position_servo_beside_a_rotor_turns_a_light_hinge_as_in_muj
     # The drive's step clamped to its bound (a position actuator's forcerange) and the rotor's taken
     # given the clamped one (`rows.spring_row_beside_rotor`): the light leg of
     # `_armature_and_damping` without damping, driven toward 1 rad (kp 5, kv 1) from 2 rad/s, the
-    # servo's 3 N m clamped to 0.3 N m throughout: MuJoCo's rate after 0.1 s is 2.02993 rad/s.
+    # servo's 3 N m clamped to 0.3 N m throughout: MuJoCo's rate after 0.1 s is 2.02993 rad/s. A guard
+    # of the clamped branch: the rows stepped one after the other gave the same.
     servo = '<position joint="hinge" kp="5" kv="1" forcelimited="true" forcerange="-0.3 0.3"/>'
     xml = _armature_and_damping(free=False).replace(' damping="1"', ' name="hinge"')
     xml = xml.replace("</mujoco>", f"<actuator>{servo}</actuator></mujoco>")
