@@ -479,11 +479,12 @@ def spring_row_beside_rotor(
     The rotor row, undamped, has residual lambda_r + armature (c_r + slope); per unit of a step S
     of the bodies along the row it moves by K_r w (K_r = armature, w the held response), and the
     spring's r_s = lambda_s + k h^2 (c + slope) + nu h drift by K_s w (K_s = k h^2 + nu h). From
-    r_r = 0 the block of both (DBD 8.1's spring rule for two rows at once) moves the bodies by
-    S = -r_s / (1 + (K_r + K_s) w), of which the spring's multiplier takes
-    step_s = (1 + K_r w) S and the rotor's the rest, -K_r w S. The spring's step is clamped to its
-    bound, and S follows it. Without a rotor (rotor_active False) this is the spring row of
-    `angular_row` (plain response, no slope).
+    r_r = 0 the block of both moves the bodies by S = -r_s / (1 + (K_r + K_s) w), of which the
+    spring's multiplier takes step_s = (1 + K_r w) S and the rotor's the rest, -K_r w S. That is
+    the spring row of `angular_row` (DBD 8.1) with the rotor relaxed along: response
+    w / (1 + K_r w) (the Schur complement of the rotor row) and the bodies moved by
+    step_s / (1 + K_r w); its bound clamps step_s and S follows. Without a rotor (rotor_active
+    False) this is the spring row of `angular_row` (plain response, no slope).
 
     Why: stepped as two rows, a spring (a hinge's joint damping) on a light body with a heavy
     rotor converged in tens of iterations: the damping stopped the light body, the rotor row
@@ -495,14 +496,10 @@ def spring_row_beside_rotor(
     """
     inverse_mass = jnp.where(rotor_active, response.held_mass, response.inverse_mass)
     slope = jnp.where(rotor_active, math.dot(response.point_impulse, hold.gap), 0.0)  # `angular_row`'s held slope
-    drift = -math.dot(direction, relative_turn(pair, h))
     rotor_share = 1.0 + jnp.where(rotor_active, armature, 0.0) * inverse_mass  # 1 + K_r w
-    residual = multipliers[1] + rule.stiffness_h2 * (error + slope) + rule.damping_h * drift
-    spring_step = -rule.relaxation * residual * rotor_share
-    spring_step = spring_step / (rotor_share + (rule.stiffness_h2 + rule.damping_h) * inverse_mass)
-    spring_step = jnp.clip(multipliers[1] + spring_step, -rule.bound, rule.bound) - multipliers[1]
-    spring_step = jnp.where(rule.active & (inverse_mass > 0.0), spring_step, 0.0)
-    step = spring_step / rotor_share
+    drift = -math.dot(direction, relative_turn(pair, h))  # direction is dc/dtheta_a = -d
+    spring_step = multiplier_step(rule, error + slope, drift, inverse_mass / rotor_share, multipliers[1])
+    step = spring_step / rotor_share  # the bodies' step S
     moved = pair._replace(motion=pair.motion + step * response.motion)
     hold = hold._replace(impulse=hold.impulse + step * response.point_impulse)
     return moved, multipliers[0] + step - spring_step, multipliers[1] + spring_step, hold
@@ -534,14 +531,23 @@ def angular_spring(
     Returns the moved pair, the new kappa and the hold.
     """
     inverse_inertia, slope = angular_spring_response(pair, hold if held_step else None)
-    drift = relative_turn(pair, h)
-    residual = multiplier + stiffness_h2 * (error + slope) + damping_h * drift
-    system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
-    candidate = multiplier - relaxation * math.matvec(math.inverse3(system), residual)
-    candidate, _ = _bounded_torque(candidate, bound)
-    step = jnp.where(active, candidate - multiplier, 0.0)
+    step = _spring_torque_step(
+        multiplier, error + slope, relative_turn(pair, h), inverse_inertia, relaxation, stiffness_h2, damping_h,
+        bound, active,
+    )  # fmt: skip
     moved, hold = _turned_by_torque(pair, hold, step)
     return moved, multiplier + step, hold
+
+
+def _spring_torque_step(multiplier, error, drift, inverse_inertia, relaxation, stiffness_h2, damping_h, bound, active):
+    """(3,) d kappa of a three-axis spring/damper with response W = `inverse_inertia` (3, 3):
+    -xi (1 + (k h^2 + nu h) W)^-1 (kappa + k h^2 c + nu h drift) (112), then |kappa| <= bound
+    (114); 0 where not active."""
+    residual = multiplier + stiffness_h2 * error + damping_h * drift
+    system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
+    candidate = multiplier - relaxation * math.matvec(math.inverse3(system), residual)
+    candidate = _bounded_torque(candidate, bound)
+    return jnp.where(active, candidate - multiplier, 0.0)
 
 
 def angular_spring_response(pair: BodyPair, hold: PointHold | None) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -556,13 +562,12 @@ def angular_spring_response(pair: BodyPair, hold: PointHold | None) -> tuple[jnp
     return held, -math.matvec(opens.T, math.matvec(hold.solve, hold.gap))
 
 
-def _bounded_torque(candidate: jnp.ndarray, bound) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(kappa within |kappa| <= bound (114), whether it was cut); bound inf: unlimited."""
+def _bounded_torque(candidate: jnp.ndarray, bound) -> jnp.ndarray:
+    """kappa within |kappa| <= bound (114); bound inf: unlimited."""
     direction, size = math.safe_normalize(candidate)
     limited = jnp.isfinite(bound)  # an unlimited drive stores bound = inf: keep inf out of the products
     finite_bound = jnp.where(limited, bound, 0.0)
-    cut = limited & (size > finite_bound)
-    return jnp.where(cut, finite_bound * direction, candidate), cut
+    return jnp.where(limited & (size > finite_bound), finite_bound * direction, candidate)
 
 
 def _turned_by_torque(pair: BodyPair, hold: PointHold | None, step: jnp.ndarray):
@@ -596,24 +601,23 @@ def angular_spring_beside_rotor(
 ) -> tuple[BodyPair, jnp.ndarray, jnp.ndarray, PointHold]:
     """`spring_row_beside_rotor` for a ball joint: its three-axis drive (`angular_spring`)
     projected right after its rotor rows (`angular_spring(..., held_step=True)` with k h^2 =
-    armature), the two as one block from the rotor's solved residual. With the held response W
-    and K_r = armature, K_s = k h^2 + nu h, the bodies move by S = -(1 + (K_r + K_s) W)^-1 r_s, the
-    drive's kappa by (1 + K_r W) S, the rotor's by -K_r W S; where |kappa| passes its bound
-    (114) the drive's step is cut and S = (1 + K_r W)^-1 (the cut step). Without a rotor
-    (rotor_active False) this is `angular_spring`'s step. multipliers: (kappa_rotor (3,),
-    kappa_drive (3,)). Returns (moved pair, kappa_rotor, kappa_drive, hold)."""
+    armature), the two as one block from the rotor's solved residual: the drive's step (112),
+    (114) with the rotor relaxed along, response W (1 + K_r W)^-1 (W the held response, K_r =
+    armature), and the bodies moved by (1 + K_r W)^-1 times that step; the rotor's kappa takes the
+    difference. Without a rotor (rotor_active False) this is `angular_spring`'s step.
+    multipliers: (kappa_rotor (3,), kappa_drive (3,)). Returns (moved pair, kappa_rotor,
+    kappa_drive, hold)."""
     plain, _ = angular_spring_response(pair, None)
     held, held_slope = angular_spring_response(pair, hold)
     inverse_inertia = jnp.where(rotor_active, held, plain)
     slope = jnp.where(rotor_active, held_slope, 0.0)
-    residual = multipliers[1] + stiffness_h2 * (error + slope) + damping_h * relative_turn(pair, h)
-    rotor_part = jnp.eye(3, dtype=error.dtype) + jnp.where(rotor_active, armature, 0.0) * inverse_inertia
-    system = rotor_part + (stiffness_h2 + damping_h) * inverse_inertia
-    moved_by = -relaxation * math.matvec(math.inverse3(system), residual)
-    candidate, cut = _bounded_torque(multipliers[1] + math.matvec(rotor_part, moved_by), bound)
-    drive_step = jnp.where(active, candidate - multipliers[1], 0.0)
-    moved_by = jnp.where(cut, math.matvec(math.inverse3(rotor_part), drive_step), moved_by)
-    moved_by = jnp.where(active, moved_by, 0.0)
+    eye = jnp.eye(3, dtype=error.dtype)
+    rotor_inverse = math.inverse3(eye + jnp.where(rotor_active, armature, 0.0) * inverse_inertia)  # (1 + K_r W)^-1
+    drive_step = _spring_torque_step(
+        multipliers[1], error + slope, relative_turn(pair, h), inverse_inertia @ rotor_inverse, relaxation,
+        stiffness_h2, damping_h, bound, active,
+    )  # fmt: skip
+    moved_by = math.matvec(rotor_inverse, drive_step)
     moved, hold = _turned_by_torque(pair, hold, moved_by)
     return moved, multipliers[0] + moved_by - drive_step, multipliers[1] + drive_step, hold
 
