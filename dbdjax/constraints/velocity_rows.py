@@ -114,13 +114,15 @@ def spring_softness(stiffness, damping, error, h: float):
 
 
 def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper, active, softness=0.0,
-                soft=False, held=0.0) -> Rows:  # fmt: skip
+                soft=False, held=0.0, relaxed=0.0) -> Rows:  # fmt: skip
     """Rows (R,) from their Jacobians (R, 3), bias, bounds and `active` (R,). soft: (R,) bool, the
     rows that are spring-dampers of softness s (R,); the others are rigid. held: (R,) what a point
-    hold takes off K (`point_hold`; 0 for none). Inactive rows, and rigid rows that move nothing
-    (K = 0), get mass = mix = 0: they never move."""
+    hold takes off K (`point_hold`; 0 for none). relaxed: (R,) the armature I_r of a rotor row
+    stepped along (`solve_row_beside_rotor`; 0 for none): K becomes K / (1 + I_r K). Inactive
+    rows, and rigid rows that move nothing (K = 0), get mass = mix = 0: they never move."""
     inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, math.dot(linear, linear))
     inverse_mass = jnp.maximum(inverse_mass - held, 0.0)
+    inverse_mass = inverse_mass / (1.0 + relaxed * inverse_mass)
     bias, lower, upper = (jnp.broadcast_to(jnp.asarray(x, inverse_mass.dtype), inverse_mass.shape)
                           for x in (bias, lower, upper))  # fmt: skip
     solvable = active & (inverse_mass > 0.0)
@@ -132,11 +134,13 @@ def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper
 
 
 def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=None, softness=None,
-          bound=jnp.inf, held=None) -> Block:  # fmt: skip
+          bound=jnp.inf, held=None, relaxed=None) -> Block:  # fmt: skip
     """A block of three rows (3, 3) with K = J M^-1 J^T in full (SI (48), (60)). projector: P (3, 3)
     when the rows span only range(P) (rows and bias are already in it), None for all three.
     softness: s of a soft block (a three-axis spring-damper), None for a rigid one. held: (3, 3)
-    what a point hold takes off K (`point_hold`), None for none."""
+    what a point hold takes off K (`point_hold`), None for none. relaxed: () the armature I_r of
+    a rotor block stepped along (`solve_block_beside_rotor`): K becomes K (1 + I_r K)^-1; None
+    for none."""
     turn_a = math.matvec(pair.inv_inertia_a, angular_a)
     turn_b = math.matvec(pair.inv_inertia_b, angular_b)
     # K_ij = (1/m_a + 1/m_b) l_i . l_j + g_a,i . I_a^-1 g_a,j + g_b,i . I_b^-1 g_b,j
@@ -148,6 +152,8 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
     if held is not None:
         coupling = coupling - held
     eye = jnp.eye(3, dtype=coupling.dtype)
+    if relaxed is not None:
+        coupling = math.matmul(coupling, math.inverse3(eye + relaxed * coupling))
     if softness is None:
         if projector is not None:
             coupling = coupling + (eye - projector)  # invert on range(P) only (module docstring)
@@ -205,6 +211,47 @@ def solve_block(pair: BodyPair, rows: Block, impulse: jnp.ndarray) -> tuple[Body
     return _push(pair, rows.linear, rows.turn_a, rows.turn_b, step), impulse + step
 
 
+# A drive stepped beside its rotor. A drive row (soft, s = h (h k + c)) and the rotor row of the
+# same coordinate (soft, s = I_r) share their Jacobian J; stepped one after the other, a light
+# body's drive stops it, the rotor row pushes it back, a little less each sweep (the light legs of
+# tests/test_mjcf.py were 0.07-1.6 rad/s from MuJoCo at 4 iterations). As one block: with the
+# rotor's residual rho_r = J v + b_r + lambda_r / I_r left where it is, the bodies step by X
+# along J (with the point held, K' the held response) and the rotor's impulse by x_r, the drive's
+# by x_d, where K' X + x_r / I_r = 0 and X = x_r + x_d: X = x_d / (1 + I_r K'), which is the rotor
+# row's mix times x_d. The drive's own update is then the soft row's with the rotor-relaxed
+# response K' / (1 + I_r K') (`scalar_rows`' relaxed, the Schur complement of the rotor row) and
+# leaves its residual at zero; its bound clamps x_d and X follows. The velocity form of
+# rows.spring_row_beside_rotor (the DBD solver's block).
+
+
+def solve_row_beside_rotor(pair: BodyPair, rows: Rows, i: int, rotor: int,
+                           impulses: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray, jnp.ndarray]:  # fmt: skip
+    """One update of scalar row i (a drive, its mass and mix from the rotor-relaxed response) and
+    the rotor row `rotor` of its coordinate as one block (the comment above). Where the rotor
+    row is inactive it is `solve_row`. Returns (pair, impulses (R,), X: the bodies' impulse along
+    the row, for the point hold)."""
+    speed = _relative_speed(pair, rows.linear[i], rows.angular_a[i], rows.angular_b[i])
+    candidate = impulses[i] - rows.mass[i] * (speed + rows.bias[i]) - rows.mix[i] * impulses[i]
+    step = jnp.clip(candidate, rows.lower[i], rows.upper[i]) - impulses[i]
+    push = jnp.where(rows.mass[rotor] > 0.0, rows.mix[rotor], 1.0) * step  # X = x_d / (1 + I_r K')
+    pair = _push(pair, rows.linear[i][None], rows.turn_a[i][None], rows.turn_b[i][None], push[None])
+    return pair, impulses.at[i].add(step).at[rotor].add(push - step), push
+
+
+def solve_block_beside_rotor(
+    pair: BodyPair, drive: Block, rotor: Block, impulse: jnp.ndarray, rotor_impulse: jnp.ndarray
+) -> tuple[BodyPair, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """A ball joint's drive block (its mass and mix from the rotor-relaxed response) and rotor
+    block as one (the comment above, with X = (1 + I_r K')^-1 x_d, the rotor's mix). Returns
+    (pair, drive impulse (3,), rotor impulse (3,), X (3,))."""
+    speed = _relative_speed(pair, drive.linear, drive.angular_a, drive.angular_b)
+    candidate = impulse - math.matvec(drive.mass, speed + drive.bias) - math.matvec(drive.mix, impulse)
+    step = clamp_norm(candidate, drive.bound) - impulse
+    push = jnp.where(jnp.any(rotor.mass != 0.0), math.matvec(rotor.mix, step), step)
+    pair = _push(pair, drive.linear, drive.turn_a, drive.turn_b, push)
+    return pair, impulse + step, rotor_impulse + push - step, push
+
+
 def _warm(pair: BodyPair, pieces) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(dv (2, 3), dw (2, 3)) of the stored impulses: pieces are (rows with fields linear, turn_a,
     turn_b (..., 3), their impulses (K,))."""
@@ -254,14 +301,18 @@ ROTOR_BLOCK = slice(29, 32)
 JOINT_IMPULSES = 32
 # The scalar rows each kind of row in use (joints.rows_in_use) needs, in the order a sweep solves
 # them: rotors, drives and motors first, then the hard rows (as the DBD solver's joints.project).
+# Each drive right after the rotor of its coordinate, the two as one block (`solve_row_beside_rotor`).
 _SCALAR_ROWS = (
-    ("rotor_hinge", ROTOR), ("rotor_slider", ROTOR), *(("rotor_euler", ROTOR + k) for k in range(3)),
-    *(("euler_drive", EULER_DRIVE + k) for k in range(3)),
-    ("hinge_drive", HINGE_DRIVE), ("angular_motor", MOTOR), ("linear_motor", MOTOR), ("has_angle_limits", ANGLE_LOWER),
+    ("rotor_hinge", ROTOR), ("rotor_slider", ROTOR), ("rotor_euler", ROTOR), ("hinge_drive", HINGE_DRIVE),
+    *((kind, index + k) for k in range(3) for kind, index in (("rotor_euler", ROTOR), ("euler_drive", EULER_DRIVE))),
+    ("angular_motor", MOTOR), ("linear_motor", MOTOR), ("has_angle_limits", ANGLE_LOWER),
     ("has_angle_limits", ANGLE_UPPER), ("has_cone", CONE), ("has_travel_limits", TRAVEL_LOWER),
     ("has_travel_limits", TRAVEL_UPPER), ("universal", UNIVERSAL_LOCK),
     *(("euler_limited", EULER_LOWER + k) for k in range(3)), *(("euler_limited", EULER_UPPER + k) for k in range(3)),
 )  # fmt: skip
+# (drive row, rotor row) on one coordinate: a hinge's drive and its rotor, a universal or gimbal
+# joint's drive of hinge k and rotor k.
+_BESIDE_ROTOR = ((HINGE_DRIVE, ROTOR), *((EULER_DRIVE + k, ROTOR + k) for k in range(3)))
 _SOFT = np.isin(np.arange(NUM_SCALARS), [HINGE_DRIVE, *range(EULER_DRIVE, EULER_DRIVE + 3), *range(ROTOR, ROTOR + 3)])
 # The scalar rows that push with the joint point held (`point_hold`); a slice, not an index array:
 # a NumPy int64 index array met int32 indices after a float64 test in the same process.
@@ -321,18 +372,6 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     rows_p = eye if projector is None else projector
     point = block(pair, rows_p, math.cross(arm_a[None], rows_p), math.cross(arm_b[None], rows_p),
                   baumgarte_bias(-delta, beta, h), True, projector=projector)  # fmt: skip
-
-    # Ball drive (DBD 9 as a soft block): the rotation vector of E = X T^-1 in world axes, pulled to
-    # zero by a three-axis spring-damper, |lambda| <= max torque h.
-    if "ball_drive" in rows:
-        goal = math.quat_exp(target.drive)
-        error_rotation = math.quat_multiply(joints.relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
-        error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
-        softness, bias = spring_softness(joint.drive_stiffness, joint.drive_damping, error, h)
-        drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, bias, flag.ball_drive, softness=softness,
-                      bound=joint.drive_max_torque * h)  # fmt: skip
-    else:
-        drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
     # Scalar rows, each (linear, angular_a, angular_b, bias, lower, upper, active, softness).
     scalar = [(zero3, zero3, zero3, 0.0, 0.0, 0.0, False, 0.0)] * NUM_SCALARS
@@ -461,21 +500,48 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         # frame: u* is the start's w_b - w_a turned with b over the last substep (by h w_b), as
         # above. Torques on a ball joint with armature are refused at finalize.
         spin = math.quat_rotate(math.quat_exp(h * start[3]), start[3] - start[2])
-        rotor_hold, held = point_hold(pair, point, jnp.zeros((3, 3), dtype), eye, eye)
+        rotor_hold, rotor_held = point_hold(pair, point, jnp.zeros((3, 3), dtype), eye, eye)
         rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, -spin, flag.rotor_ball & (joint.armature[0] > 0.0),
-                      softness=joint.armature[0], held=held)  # fmt: skip
+                      softness=joint.armature[0], held=rotor_held)  # fmt: skip
     else:
         rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
+
+    # Ball drive (DBD 9 as a soft block): the rotation vector of E = X T^-1 in world axes, pulled to
+    # zero by a three-axis spring-damper, |lambda| <= max torque h. Beside a rotor it pushes with the
+    # point held, with the rotor-relaxed response (`solve_block_beside_rotor`).
+    if "ball_drive" in rows:
+        goal = math.quat_exp(target.drive)
+        error_rotation = math.quat_multiply(joints.relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
+        error = math.quat_rotate(quat_a, math.quat_log(error_rotation))
+        softness, bias = spring_softness(joint.drive_stiffness, joint.drive_damping, error, h)
+        beside = {}
+        if "rotor_ball" in rows:
+            rotor_on = flag.rotor_ball & (joint.armature[0] > 0.0)
+            rotor_armature = jnp.where(rotor_on, joint.armature[0], 0.0)
+            beside = dict(held=jnp.where(rotor_on, rotor_held, 0.0), relaxed=rotor_armature)
+        drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, bias, flag.ball_drive, softness=softness,
+                      bound=joint.drive_max_torque * h, **beside)  # fmt: skip
+    else:
+        drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
     linear, angular_a, angular_b = (jnp.stack([entry[k] for entry in scalar]) for k in range(3))
     bias, lower, upper, softness = (jnp.stack([jnp.asarray(entry[k], dtype) for entry in scalar]) for k in (3, 4, 5, 7))
     active = jnp.stack([jnp.asarray(entry[6], bool) for entry in scalar])
-    scalar_hold, held = jnp.zeros((NUM_SCALARS, 3), dtype), 0.0
+    scalar_hold, held, relaxed = jnp.zeros((NUM_SCALARS, 3), dtype), 0.0, 0.0
     if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
         hold, held = point_hold(pair, point, linear[_HELD], angular_a[_HELD], angular_b[_HELD])
         scalar_hold = scalar_hold.at[_HELD].set(hold)
         held = jnp.zeros(NUM_SCALARS, dtype).at[_HELD].set(jnp.diagonal(held))
-    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT, held)
+        relaxed = jnp.zeros(NUM_SCALARS, dtype)
+        # A drive beside an active rotor (same Jacobian) pushes with the point held too, with the
+        # rotor-relaxed response (`solve_row_beside_rotor`).
+        for drive_row, rotor_row in _BESIDE_ROTOR:
+            rotor_on = active[rotor_row]  # the rotor row is active only with armature
+            scalar_hold = scalar_hold.at[drive_row].set(jnp.where(rotor_on, scalar_hold[rotor_row], 0.0))
+            held = held.at[drive_row].set(jnp.where(rotor_on, held[rotor_row], 0.0))
+            relaxed = relaxed.at[drive_row].set(jnp.where(rotor_on, softness[rotor_row], 0.0))
+    scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT, held,
+                          relaxed)  # fmt: skip
 
     # Angular lock, a block over the plane across the axle (hinge, planar: SI (86)-(90), the error
     # the angle between the axes about the axis turning a's toward b's) or over all three axes
@@ -516,17 +582,27 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
         pair, value = solve_block(pair, joint_rows.rotor, impulses[ROTOR_BLOCK])
         pair, point_impulse = held(pair, point_impulse, value - impulses[ROTOR_BLOCK], joint_rows.rotor_hold)
         impulses = impulses.at[ROTOR_BLOCK].set(value)
-    if "ball_drive" in rows:
+    if {"rotor_ball", "ball_drive"} <= rows:
+        pair, value, rotor_value, push = solve_block_beside_rotor(
+            pair, joint_rows.drive, joint_rows.rotor, impulses[DRIVE_BLOCK], impulses[ROTOR_BLOCK]
+        )
+        pair, point_impulse = held(pair, point_impulse, push, joint_rows.rotor_hold)
+        impulses = impulses.at[DRIVE_BLOCK].set(value).at[ROTOR_BLOCK].set(rotor_value)
+    elif "ball_drive" in rows:
         pair, value = solve_block(pair, joint_rows.drive, impulses[DRIVE_BLOCK])
         impulses = impulses.at[DRIVE_BLOCK].set(value)
     scalars = impulses[SCALARS]
-    for i in _scalar_rows_in_use(rows):
+    in_use = _scalar_rows_in_use(rows)
+    beside_rotor = {drive: rotor for drive, rotor in _BESIDE_ROTOR if rotor in in_use}
+    for i in in_use:
         before = scalars[i]
-        pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
-        if ROTOR <= i < ROTOR + 3:  # _HELD
-            pair, point_impulse = held(
-                pair, point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[i][None]
-            )
+        if i in beside_rotor:
+            pair, scalars, push = solve_row_beside_rotor(pair, joint_rows.scalars, i, beside_rotor[i], scalars)
+        else:
+            pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
+            push = scalars[i] - before
+        if i in beside_rotor or ROTOR <= i < ROTOR + 3:  # the rows that push with the point held
+            pair, point_impulse = held(pair, point_impulse, push[None], joint_rows.scalar_hold[i][None])
     impulses = impulses.at[SCALARS].set(scalars).at[POINT].set(point_impulse)
     if "rotation_lock" in rows:
         pair, value = solve_block(pair, joint_rows.lock, impulses[LOCK])
