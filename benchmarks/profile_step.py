@@ -23,9 +23,10 @@ average and its CPU-time ratio (before / after), so that a ratio can be told fro
 child processes, then time N rollout calls each, one after the other in alternating order, so
 that each pair of calls meets the same load; recorded: every pair's CPU times, the median of the
 pairs' ratios and the ratio of the two minima. On a loaded machine this is the steadiest ratio.
-The settings are brax_comparison.py's: 1 substep, 4 iterations, float32, uniform random controls
-in the actuators' ctrlrange, the XML's dt. Times: the best of `--repeats` timed calls (wall and
-this process's CPU time; on a shared machine CPU time is the steadier of the two).
+The settings are brax_comparison.py's (--solver: dbdjax's solver, dbd by default): 1 substep, 4
+iterations, float32, uniform random controls in the actuators' ctrlrange, the XML's dt. Times: the
+best of `--repeats` timed calls (wall and this process's CPU time; on a shared machine CPU time is
+the steadier of the two).
 """
 
 from __future__ import annotations
@@ -86,13 +87,14 @@ def hlo_counts(compiled) -> dict:
     }
 
 
-def engine(name: str, kind: str):
-    """(init state, step(state, control), control range, dt) of dbdjax or brax-positional on a model."""
+def engine(name: str, kind: str, solver: str = "dbd"):
+    """(init state, step(state, control), control range, dt) of dbdjax (its `solver`: dbd or impulse)
+    or brax-positional on a model."""
     xml = ASSETS / f"{name}.xml"
     if kind == "dbdjax":
         import dbdjax as dbd
 
-        model = dbd.load_mjcf(xml, substeps=1, iterations=4)
+        model = dbd.load_mjcf(xml, substeps=1, iterations=4, solver=solver)
         return dbd.init(model), lambda s, c: dbd.step(model, s, c), np.asarray(model.control_range), model
     from brax.io import mjcf
     from brax.positional import pipeline
@@ -102,8 +104,9 @@ def engine(name: str, kind: str):
     return state, lambda s, c: pipeline.step(system, s, c), np.asarray(system.mj_model.actuator_ctrlrange), None
 
 
-def measure(name: str, kind: str, batches: list[int], repeats: int, hlo: bool, parts_too: bool = False) -> dict:
-    state, step, control_range, model = engine(name, kind)
+def measure(name: str, kind: str, batches: list[int], repeats: int, hlo: bool, parts_too: bool = False,
+            solver: str = "dbd") -> dict:  # fmt: skip
+    state, step, control_range, model = engine(name, kind, solver)
     result: dict = {"load_average_at_start": [round(x, 2) for x in os.getloadavg()], "batches": []}
     for batch in batches:
         controls = _controls(control_range, (HORIZON, batch))
@@ -172,7 +175,7 @@ def parts(model, state, control_range, repeats: int) -> dict:
 def serve(args) -> None:
     """Resident child of --paired: compile the rollout at each batch, print "ready", then answer each
     line "<batch index>" on stdin with one timed call's "<cpu s> <wall s>"."""
-    state, step, control_range, _ = engine(args.model, "dbdjax")
+    state, step, control_range, _ = engine(args.model, "dbdjax", args.solver)
     calls = []
     for batch in args.batches:
         controls = _controls(control_range, (HORIZON, batch))
@@ -192,7 +195,8 @@ def serve(args) -> None:
 
 def paired(baseline: str, here: str, model: str, args) -> dict:
     """--paired: N alternating timed calls of the baseline's and this checkout's rollouts."""
-    command = [sys.executable, __file__, "--serve", "--model", model, "--batches", *map(str, args.batches)]
+    command = [sys.executable, __file__, "--serve", "--model", model, "--solver", args.solver,
+               "--batches", *map(str, args.batches)]  # fmt: skip
     servers = [
         subprocess.Popen(
             command, env=dict(os.environ, PYTHONPATH=path), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
@@ -233,7 +237,7 @@ def paired(baseline: str, here: str, model: str, args) -> dict:
 
 def child(args) -> None:
     """Measure one (model, engine) in this process and print its JSON on the last line."""
-    result = measure(args.model, args.kind, args.batches, args.repeats, args.hlo, args.parts)
+    result = measure(args.model, args.kind, args.batches, args.repeats, args.hlo, args.parts, args.solver)
     print(json.dumps(result))
 
 
@@ -256,7 +260,8 @@ def _ratios(before: dict, after: dict) -> dict:
 def run_child(path: str, model: str, kind: str, args) -> dict:
     env = dict(os.environ, PYTHONPATH=path)
     command = [sys.executable, __file__, "--child", "--model", model, "--kind", kind, "--repeats", str(args.repeats),
-               "--batches", *map(str, args.batches)] + (["--hlo"] if kind == "dbdjax" else [])  # fmt: skip
+               "--solver", args.solver, "--batches", *map(str, args.batches)]  # fmt: skip
+    command += ["--hlo"] if kind == "dbdjax" else []
     command += ["--parts"] if kind == "dbdjax" and args.parts else []
     done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
     lines = done.stdout.strip().splitlines()
@@ -275,6 +280,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1, help="before/after child pairs per model (0: --paired only)")
     parser.add_argument("--out", help="write the results here (JSON)")
     parser.add_argument("--note", default="")
+    parser.add_argument("--solver", default="dbd", choices=["dbd", "impulse"], help="dbdjax's solver (load_mjcf)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--model", help=argparse.SUPPRESS)
     parser.add_argument("--kind", help=argparse.SUPPRESS)
@@ -282,6 +288,8 @@ def main() -> None:
     parser.add_argument("--paired", type=int, default=0, help="N alternating timed calls (with --baseline)")
     parser.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.parts and args.solver != "dbd":
+        parser.error("--parts times the DBD solver's parts: leave --solver at dbd")
     if args.child:
         child(args)
         return
@@ -291,7 +299,8 @@ def main() -> None:
     here = str(Path(__file__).resolve().parents[1])
     started = time.perf_counter()
     results: dict = {
-        "settings": "1 substep, 4 iterations, float32, the XML's dt, uniform random controls in ctrlrange; "
+        "settings": f"solver {args.solver}, 1 substep, 4 iterations, float32, the XML's dt, uniform random controls "
+        "in ctrlrange; "
         f"ms/step of a jitted {HORIZON}-step rollout (lax.scan of the vmapped step), best of {args.repeats}",
         "machine": machine.describe(),
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],

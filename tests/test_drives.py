@@ -162,7 +162,8 @@ def test_slider_motor_lifts_at_its_speed_or_sinks_when_too_weak(max_force):
 
 
 @pytest.mark.parametrize("kind", ["hinge", "ball"])
-def test_a_saturated_drive_beside_a_rotor_turns_a_light_body_at_its_bound_over_body_plus_rotor(float64, kind):
+@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+def test_a_saturated_drive_beside_a_rotor_turns_a_light_body_at_its_bound_over_body_plus_rotor(float64, kind, solver):
     # A light sphere (I = 1.6e-4 kg m^2) on a joint at its centre with armature 1, spinning about z at
     # 1 rad/s, driven toward 3 rad about z (stiffness 100, damping 1): the drive asks 300 N m and is
     # clamped to 0.5 N m, so the spin rises at 0.5 / (I + 1) rad/s^2. The drive steps beside its rotor
@@ -179,7 +180,7 @@ def test_a_saturated_drive_beside_a_rotor_turns_a_light_body_at_its_bound_over_b
         joint = b.add_ball_joint(dbd.WORLD, ball, anchor=(0, 0, 0))
     b.add_drive(joint, stiffness=100.0, damping=1.0, max_torque=bound)
     b.add_armature(joint, armature)
-    model = b.finalize(dt=1e-3, iterations=4)
+    model = b.finalize(dt=1e-3, iterations=4, solver=solver)
     target = [3.0] if kind == "hinge" else [0.0, 0.0, 3.0]
     final, _ = run(model, target, seconds=0.5)
     spin = np.asarray(final.ang_vel[0])
