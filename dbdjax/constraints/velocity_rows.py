@@ -118,8 +118,8 @@ def scalar_rows(pair: BodyPair, linear, angular_a, angular_b, bias, lower, upper
     """Rows (R,) from their Jacobians (R, 3), bias, bounds and `active` (R,). soft: (R,) bool, the
     rows that are spring-dampers of softness s (R,); the others are rigid. held: (R,) what a point
     hold takes off K (`point_hold`; 0 for none). relaxed: (R,) the armature I_r of a rotor row
-    stepped along (`solve_row_beside_rotor`; 0 for none): K becomes K / (1 + I_r K). Inactive
-    rows, and rigid rows that move nothing (K = 0), get mass = mix = 0: they never move."""
+    stepped along (`solve_drive_beside_rotor`; 0 for none): the update's K becomes K / (1 + I_r K).
+    Inactive rows, and rigid rows that move nothing (K = 0), get mass = mix = 0: they never move."""
     inverse_mass, turn_a, turn_b = row.row_inverse_mass(pair, angular_a, angular_b, math.dot(linear, linear))
     inverse_mass = jnp.maximum(inverse_mass - held, 0.0)
     inverse_mass = inverse_mass / (1.0 + relaxed * inverse_mass)
@@ -139,8 +139,8 @@ def block(pair: BodyPair, linear, angular_a, angular_b, bias, active, projector=
     when the rows span only range(P) (rows and bias are already in it), None for all three.
     softness: s of a soft block (a three-axis spring-damper), None for a rigid one. held: (3, 3)
     what a point hold takes off K (`point_hold`), None for none. relaxed: () the armature I_r of
-    a rotor block stepped along (`solve_block_beside_rotor`): K becomes K (1 + I_r K)^-1; None
-    for none."""
+    a rotor block stepped along (`solve_drive_block_beside_rotor`): the update's K becomes
+    K (1 + I_r K)^-1; None for none."""
     turn_a = math.matvec(pair.inv_inertia_a, angular_a)
     turn_b = math.matvec(pair.inv_inertia_b, angular_b)
     # K_ij = (1/m_a + 1/m_b) l_i . l_j + g_a,i . I_a^-1 g_a,j + g_b,i . I_b^-1 g_b,j
@@ -186,12 +186,32 @@ def _push(pair: BodyPair, linear, turn_a, turn_b, impulse) -> BodyPair:
     )
 
 
-def solve_row(pair: BodyPair, rows: Rows, i: int, impulses: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray]:
-    """One sequential-impulse update of scalar row i (static) of `rows`; impulses: (R,) accumulated."""
+class Push(NamedTuple):
+    """What a unit impulse of each of K rows does to the bodies, where it is not the row's own
+    M^-1 J^T: a row that pushes with the joint point held (`point_hold`) moves them by its own
+    and its point impulses' together. linear, turn_a, turn_b: (K, 3) as `Rows`' (`_push`)."""
+
+    linear: jnp.ndarray
+    turn_a: jnp.ndarray
+    turn_b: jnp.ndarray
+
+
+def held_push(rows: Rows | Block, point: Block, hold: jnp.ndarray, scale=1.0) -> Push:
+    """The `Push` of rows (K, 3) whose impulse moves the bodies by scale (K,) times their own and
+    comes with the point impulses hold (K, 3) (per unit impulse)."""
+    scale = jnp.reshape(scale, (-1, 1))
+    return Push(*(scale * getattr(rows, name) + math.matmul(hold, getattr(point, name)) for name in Push._fields))
+
+
+def solve_row(pair: BodyPair, rows: Rows, i: int, impulses: jnp.ndarray,
+              push: Push | None = None) -> tuple[BodyPair, jnp.ndarray]:  # fmt: skip
+    """One sequential-impulse update of scalar row i (static) of `rows`; impulses: (R,) accumulated.
+    push: how the row moves the bodies, if not as its own (`Push`)."""
     speed = _relative_speed(pair, rows.linear[i], rows.angular_a[i], rows.angular_b[i])
     candidate = impulses[i] - rows.mass[i] * (speed + rows.bias[i]) - rows.mix[i] * impulses[i]
     step = jnp.clip(candidate, rows.lower[i], rows.upper[i]) - impulses[i]
-    pair = _push(pair, rows.linear[i][None], rows.turn_a[i][None], rows.turn_b[i][None], step[None])
+    along = rows if push is None else push
+    pair = _push(pair, along.linear[i][None], along.turn_a[i][None], along.turn_b[i][None], step[None])
     return pair, impulses.at[i].add(step)
 
 
@@ -203,53 +223,54 @@ def clamp_norm(vector, bound):
     return jnp.where(limited & (size > finite_bound), finite_bound * direction, vector)
 
 
-def solve_block(pair: BodyPair, rows: Block, impulse: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray]:
-    """One update of a block (3,): d lambda = -mass (J v + b) - mix lambda, |lambda| <= bound."""
+def solve_block(pair: BodyPair, rows: Block, impulse: jnp.ndarray,
+                push: Push | None = None) -> tuple[BodyPair, jnp.ndarray]:  # fmt: skip
+    """One update of a block (3,): d lambda = -mass (J v + b) - mix lambda, |lambda| <= bound.
+    push: how the rows move the bodies, if not as their own (`Push`)."""
     speed = _relative_speed(pair, rows.linear, rows.angular_a, rows.angular_b)
     candidate = impulse - math.matvec(rows.mass, speed + rows.bias) - math.matvec(rows.mix, impulse)
     step = clamp_norm(candidate, rows.bound) - impulse
-    return _push(pair, rows.linear, rows.turn_a, rows.turn_b, step), impulse + step
+    along = rows if push is None else push
+    return _push(pair, along.linear, along.turn_a, along.turn_b, step), impulse + step
 
 
 # A drive stepped beside its rotor. A drive row (soft, s = h (h k + c)) and the rotor row of the
 # same coordinate (soft, s = I_r) share their Jacobian J; stepped one after the other, a light
 # body's drive stops it, the rotor row pushes it back, a little less each sweep (the light legs of
-# tests/test_mjcf.py were 0.07-1.6 rad/s from MuJoCo at 4 iterations). As one block: with the
-# rotor's residual rho_r = J v + b_r + lambda_r / I_r left where it is, the bodies step by X
-# along J (with the point held, K' the held response) and the rotor's impulse by x_r, the drive's
-# by x_d, where K' X + x_r / I_r = 0 and X = x_r + x_d: X = x_d / (1 + I_r K'), which is the rotor
-# row's mix times x_d. The drive's own update is then the soft row's with the rotor-relaxed
-# response K' / (1 + I_r K') (`scalar_rows`' relaxed, the Schur complement of the rotor row) and
-# leaves its residual at zero; its bound clamps x_d and X follows. The velocity form of
-# rows.spring_row_beside_rotor (the DBD solver's block).
+# tests/test_mjcf.py were 0.07-1.6 rad/s from MuJoCo at 4 iterations). So the drive is stepped
+# right after its rotor, the two as one block: from the rotor's residual rho_r = J v + b_r +
+# lambda_r / I_r (zero after its own update), the bodies step by X along J (with the point held,
+# K' the held response) and the impulses by x_d (drive) and X - x_d (rotor), keeping rho_r where
+# it is: K' X + (X - x_d) / I_r = 0, X = x_d / (1 + I_r K') = mix_r x_d, mix_r the rotor row's
+# mix. The drive's update is then the soft row's with the rotor-relaxed response
+# K' / (1 + I_r K') (the Schur complement of the rotor row: `scalar_rows`' relaxed), which leaves
+# its residual at zero; its bound clamps x_d and X follows. So the drive row is `solve_row` with
+# that response, pushing by mix_r times its own push, and the rotor's impulse moves by
+# (mix_r - 1) x_d. For a ball joint's blocks mix_r is the 3x3 (1 + I_r K')^-1. The velocity form
+# of rows.spring_row_beside_rotor (the DBD solver's block).
 
 
-def solve_row_beside_rotor(pair: BodyPair, rows: Rows, i: int, rotor: int,
-                           impulses: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray, jnp.ndarray]:  # fmt: skip
-    """One update of scalar row i (a drive, its mass and mix from the rotor-relaxed response) and
-    the rotor row `rotor` of its coordinate as one block (the comment above). Where the rotor
-    row is inactive it is `solve_row`. Returns (pair, impulses (R,), X: the bodies' impulse along
-    the row, for the point hold)."""
-    speed = _relative_speed(pair, rows.linear[i], rows.angular_a[i], rows.angular_b[i])
-    candidate = impulses[i] - rows.mass[i] * (speed + rows.bias[i]) - rows.mix[i] * impulses[i]
-    step = jnp.clip(candidate, rows.lower[i], rows.upper[i]) - impulses[i]
-    push = jnp.where(rows.mass[rotor] > 0.0, rows.mix[rotor], 1.0) * step  # X = x_d / (1 + I_r K')
-    pair = _push(pair, rows.linear[i][None], rows.turn_a[i][None], rows.turn_b[i][None], push[None])
-    return pair, impulses.at[i].add(step).at[rotor].add(push - step), push
+def solve_drive_beside_rotor(pair: BodyPair, rows: Rows, drive: int, rotor: int, impulses: jnp.ndarray, push: Push,
+                             rotor_share: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray]:  # fmt: skip
+    """One update of scalar row `drive` right after the rotor row `rotor` of its coordinate, the
+    two as one block (the comment above): `solve_row` with the drive's mass and mix from the
+    rotor-relaxed response and push (`Push`) mix_r times its own, and the rotor's impulse moved
+    by rotor_share x_d (rotor_share: (R,), the drive's mix_r - 1; 0 where the rotor is inactive,
+    where this is `solve_row`). Returns (pair, impulses (R,))."""
+    before = impulses[drive]
+    pair, impulses = solve_row(pair, rows, drive, impulses, push)
+    rotor_row = np.arange(impulses.shape[-1]) == rotor  # a mask, not .at[rotor]: one kernel fewer per sweep
+    return pair, impulses + jnp.where(rotor_row, rotor_share[drive] * (impulses[drive] - before), 0.0)
 
 
-def solve_block_beside_rotor(
-    pair: BodyPair, drive: Block, rotor: Block, impulse: jnp.ndarray, rotor_impulse: jnp.ndarray
-) -> tuple[BodyPair, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """A ball joint's drive block (its mass and mix from the rotor-relaxed response) and rotor
-    block as one (the comment above, with X = (1 + I_r K')^-1 x_d, the rotor's mix). Returns
-    (pair, drive impulse (3,), rotor impulse (3,), X (3,))."""
-    speed = _relative_speed(pair, drive.linear, drive.angular_a, drive.angular_b)
-    candidate = impulse - math.matvec(drive.mass, speed + drive.bias) - math.matvec(drive.mix, impulse)
-    step = clamp_norm(candidate, drive.bound) - impulse
-    push = jnp.where(jnp.any(rotor.mass != 0.0), math.matvec(rotor.mix, step), step)
-    pair = _push(pair, drive.linear, drive.turn_a, drive.turn_b, push)
-    return pair, impulse + step, rotor_impulse + push - step, push
+def solve_drive_block_beside_rotor(pair: BodyPair, drive: Block, impulse: jnp.ndarray, push: Push,
+                                   rotor_share: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray, jnp.ndarray]:  # fmt: skip
+    """A ball joint's drive block right after its rotor block, as `solve_drive_beside_rotor`: the
+    drive's mass and mix from the rotor-relaxed response, its push (`Push`) mix_r^T times its own
+    (mix_r (3, 3)), rotor_share: (3, 3) mix_r - 1. Returns (pair, drive impulse (3,), the rotor's
+    impulse's change (3,))."""
+    pair, value = solve_block(pair, drive, impulse, push)
+    return pair, value, math.matvec(rotor_share, value - impulse)
 
 
 def _warm(pair: BodyPair, pieces) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -301,7 +322,7 @@ ROTOR_BLOCK = slice(29, 32)
 JOINT_IMPULSES = 32
 # The scalar rows each kind of row in use (joints.rows_in_use) needs, in the order a sweep solves
 # them: rotors, drives and motors first, then the hard rows (as the DBD solver's joints.project).
-# Each drive right after the rotor of its coordinate, the two as one block (`solve_row_beside_rotor`).
+# Each drive right after the rotor of its coordinate (stepped as one: `solve_drive_beside_rotor`).
 _SCALAR_ROWS = (
     ("rotor_hinge", ROTOR), ("rotor_slider", ROTOR), ("rotor_euler", ROTOR), ("hinge_drive", HINGE_DRIVE),
     *((kind, index + k) for k in range(3) for kind, index in (("rotor_euler", ROTOR), ("euler_drive", EULER_DRIVE))),
@@ -321,9 +342,12 @@ _HELD = slice(ROTOR, ROTOR + 3)
 
 class JointRows(NamedTuple):
     """Every row of one joint: ball drive (Block), NUM_SCALARS scalar rows (Rows), angular lock,
-    point, ball rotor (Block), and the point impulse per unit impulse of the rows that push with
-    the point held (`point_hold`): scalar_hold (NUM_SCALARS, 3), rotor_hold (3, 3), zero for the
-    others."""
+    point, ball rotor (Block); for the scalar rows, the ball rotor and the ball drive, the point
+    impulse per unit impulse of those that push with the point held (`point_hold`; *_hold
+    (NUM_SCALARS, 3), (3, 3), (3, 3), zero for the others) and how they move the bodies, point
+    impulses and all (*_push: `Push`); and what a drive's step beside its rotor moves the rotor's
+    impulse by, per unit (`solve_drive_beside_rotor`): scalar_rotor_share (NUM_SCALARS,),
+    drive_rotor_share (3, 3)."""
 
     drive: Block
     scalars: Rows
@@ -332,6 +356,12 @@ class JointRows(NamedTuple):
     rotor: Block
     scalar_hold: jnp.ndarray
     rotor_hold: jnp.ndarray
+    drive_hold: jnp.ndarray
+    scalar_push: Push
+    rotor_push: Push
+    drive_push: Push
+    scalar_rotor_share: jnp.ndarray
+    drive_rotor_share: jnp.ndarray
 
 
 def _scalar_rows_in_use(rows: frozenset[str]) -> list[int]:
@@ -501,14 +531,15 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         # above. Torques on a ball joint with armature are refused at finalize.
         spin = math.quat_rotate(math.quat_exp(h * start[3]), start[3] - start[2])
         rotor_hold, rotor_held = point_hold(pair, point, jnp.zeros((3, 3), dtype), eye, eye)
-        rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, -spin, flag.rotor_ball & (joint.armature[0] > 0.0),
-                      softness=joint.armature[0], held=rotor_held)  # fmt: skip
+        ball_rotor_on = flag.rotor_ball & (joint.armature[0] > 0.0)
+        rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, -spin, ball_rotor_on, softness=joint.armature[0],
+                      held=rotor_held)  # fmt: skip
     else:
         rotor = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
     # Ball drive (DBD 9 as a soft block): the rotation vector of E = X T^-1 in world axes, pulled to
     # zero by a three-axis spring-damper, |lambda| <= max torque h. Beside a rotor it pushes with the
-    # point held, with the rotor-relaxed response (`solve_block_beside_rotor`).
+    # point held, with the rotor-relaxed response (`solve_drive_block_beside_rotor`).
     if "ball_drive" in rows:
         goal = math.quat_exp(target.drive)
         error_rotation = math.quat_multiply(joints.relative_rotation(joint, quat_a, quat_b), math.quat_conjugate(goal))
@@ -516,13 +547,21 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         softness, bias = spring_softness(joint.drive_stiffness, joint.drive_damping, error, h)
         beside = {}
         if "rotor_ball" in rows:
-            rotor_on = flag.rotor_ball & (joint.armature[0] > 0.0)
-            rotor_armature = jnp.where(rotor_on, joint.armature[0], 0.0)
-            beside = dict(held=jnp.where(rotor_on, rotor_held, 0.0), relaxed=rotor_armature)
+            rotor_armature = jnp.where(ball_rotor_on, joint.armature[0], 0.0)
+            beside = dict(held=jnp.where(ball_rotor_on, rotor_held, 0.0), relaxed=rotor_armature)
         drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, bias, flag.ball_drive, softness=softness,
                       bound=joint.drive_max_torque * h, **beside)  # fmt: skip
     else:
         drive = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
+    drive_hold, drive_rotor_share = jnp.zeros((3, 3), dtype), jnp.zeros((3, 3), dtype)
+    drive_push = Push(drive.linear, drive.turn_a, drive.turn_b)
+    if {"rotor_ball", "ball_drive"} <= rows:  # `solve_drive_block_beside_rotor`
+        carry = jnp.where(ball_rotor_on, rotor.mix, eye)  # mix_r = (1 + I_r K')^-1
+        drive_hold = jnp.where(ball_rotor_on, rotor_hold, 0.0)
+        drive_push = Push(*(math.matmul(jnp.swapaxes(carry, -1, -2), field)
+                            for field in held_push(drive, point, drive_hold)))  # fmt: skip
+        drive_hold = math.matmul(jnp.swapaxes(carry, -1, -2), drive_hold)
+        drive_rotor_share = carry - eye
 
     linear, angular_a, angular_b = (jnp.stack([entry[k] for entry in scalar]) for k in range(3))
     bias, lower, upper, softness = (jnp.stack([jnp.asarray(entry[k], dtype) for entry in scalar]) for k in (3, 4, 5, 7))
@@ -533,8 +572,8 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
         scalar_hold = scalar_hold.at[_HELD].set(hold)
         held = jnp.zeros(NUM_SCALARS, dtype).at[_HELD].set(jnp.diagonal(held))
         relaxed = jnp.zeros(NUM_SCALARS, dtype)
-        # A drive beside an active rotor (same Jacobian) pushes with the point held too, with the
-        # rotor-relaxed response (`solve_row_beside_rotor`).
+        # A drive beside an active rotor pushes with the point held too, with the rotor-relaxed
+        # response (`solve_drive_beside_rotor`).
         for drive_row, rotor_row in _BESIDE_ROTOR:
             rotor_on = active[rotor_row]  # the rotor row is active only with armature
             scalar_hold = scalar_hold.at[drive_row].set(jnp.where(rotor_on, scalar_hold[rotor_row], 0.0))
@@ -542,6 +581,15 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
             relaxed = relaxed.at[drive_row].set(jnp.where(rotor_on, softness[rotor_row], 0.0))
     scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT, held,
                           relaxed)  # fmt: skip
+    # A drive beside an active rotor moves the bodies (and the point) by mix_r x_d and the rotor's
+    # impulse by (mix_r - 1) x_d (`solve_drive_beside_rotor`).
+    carry, scalar_rotor_share = jnp.ones(NUM_SCALARS, dtype), jnp.zeros(NUM_SCALARS, dtype)
+    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
+        for drive_row, rotor_row in _BESIDE_ROTOR:
+            share = jnp.where(active[rotor_row], scalars.mix[rotor_row], 1.0)  # mix_r = 1 / (1 + I_r K')
+            carry = carry.at[drive_row].set(share)
+            scalar_rotor_share = scalar_rotor_share.at[drive_row].set(share - 1.0)
+        scalar_hold = carry[:, None] * scalar_hold
 
     # Angular lock, a block over the plane across the axle (hinge, planar: SI (86)-(90), the error
     # the angle between the axes about the axis turning a's toward b's) or over all three axes
@@ -561,7 +609,9 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     else:
         lock = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
-    result = JointRows(drive, scalars, lock, point, rotor, scalar_hold, rotor_hold)
+    result = JointRows(drive, scalars, lock, point, rotor, scalar_hold, rotor_hold, drive_hold,
+                       held_push(scalars, point, scalar_hold, carry), held_push(rotor, point, rotor_hold), drive_push,
+                       scalar_rotor_share, drive_rotor_share)  # fmt: skip
     dv, dw = _warm(pair, [(drive, impulses[DRIVE_BLOCK]), (scalars, impulses[SCALARS]), (lock, impulses[LOCK]),
                           (point, impulses[POINT]), (rotor, impulses[ROTOR_BLOCK])])  # fmt: skip
     return result, impulses, dv, dw
@@ -571,38 +621,39 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     """One pass over a joint's rows: rotors, drives and motors first, then limits, the angular lock
     and the point last (so that the joint gap has the last word, as in the DBD solver)."""
     pair = BodyPair.of(bodies)
-    point = joint_rows.point
 
-    def held(pair, point_impulse, step, hold):  # the point impulse that comes with a held row's step
-        push = math.sum_small(step[:, None] * hold, axis=0)
-        return _push(pair, point.linear, point.turn_a, point.turn_b, push), point_impulse + push
+    def held(point_impulse, step, hold):  # the point impulse that came with a held row's step (its Push)
+        return point_impulse + math.sum_small(step[:, None] * hold, axis=0)
 
     point_impulse = impulses[POINT]
     if "rotor_ball" in rows:
-        pair, value = solve_block(pair, joint_rows.rotor, impulses[ROTOR_BLOCK])
-        pair, point_impulse = held(pair, point_impulse, value - impulses[ROTOR_BLOCK], joint_rows.rotor_hold)
+        pair, value = solve_block(pair, joint_rows.rotor, impulses[ROTOR_BLOCK], joint_rows.rotor_push)
+        point_impulse = held(point_impulse, value - impulses[ROTOR_BLOCK], joint_rows.rotor_hold)
         impulses = impulses.at[ROTOR_BLOCK].set(value)
     if {"rotor_ball", "ball_drive"} <= rows:
-        pair, value, rotor_value, push = solve_block_beside_rotor(
-            pair, joint_rows.drive, joint_rows.rotor, impulses[DRIVE_BLOCK], impulses[ROTOR_BLOCK]
+        pair, value, rotor_change = solve_drive_block_beside_rotor(
+            pair, joint_rows.drive, impulses[DRIVE_BLOCK], joint_rows.drive_push, joint_rows.drive_rotor_share
         )
-        pair, point_impulse = held(pair, point_impulse, push, joint_rows.rotor_hold)
-        impulses = impulses.at[DRIVE_BLOCK].set(value).at[ROTOR_BLOCK].set(rotor_value)
+        point_impulse = held(point_impulse, value - impulses[DRIVE_BLOCK], joint_rows.drive_hold)
+        impulses = impulses.at[DRIVE_BLOCK].set(value).at[ROTOR_BLOCK].add(rotor_change)
     elif "ball_drive" in rows:
         pair, value = solve_block(pair, joint_rows.drive, impulses[DRIVE_BLOCK])
         impulses = impulses.at[DRIVE_BLOCK].set(value)
     scalars = impulses[SCALARS]
     in_use = _scalar_rows_in_use(rows)
-    beside_rotor = {drive: rotor for drive, rotor in _BESIDE_ROTOR if rotor in in_use}
+    beside_rotor = {drive: rotor for drive, rotor in _BESIDE_ROTOR if drive in in_use and rotor in in_use}
+    pushes = joint_rows.scalar_push
     for i in in_use:
         before = scalars[i]
         if i in beside_rotor:
-            pair, scalars, push = solve_row_beside_rotor(pair, joint_rows.scalars, i, beside_rotor[i], scalars)
+            pair, scalars = solve_drive_beside_rotor(pair, joint_rows.scalars, i, beside_rotor[i], scalars, pushes,
+                                                     joint_rows.scalar_rotor_share)  # fmt: skip
+        elif ROTOR <= i < ROTOR + 3:
+            pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars, pushes)
         else:
             pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
-            push = scalars[i] - before
         if i in beside_rotor or ROTOR <= i < ROTOR + 3:  # the rows that push with the point held
-            pair, point_impulse = held(pair, point_impulse, push[None], joint_rows.scalar_hold[i][None])
+            point_impulse = held(point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[i][None])
     impulses = impulses.at[SCALARS].set(scalars).at[POINT].set(point_impulse)
     if "rotation_lock" in rows:
         pair, value = solve_block(pair, joint_rows.lock, impulses[LOCK])
