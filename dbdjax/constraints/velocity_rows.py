@@ -206,12 +206,12 @@ def held_push(rows: Rows | Block, point: Block, hold: jnp.ndarray, scale=1.0) ->
 def solve_row(pair: BodyPair, rows: Rows, i: int, impulses: jnp.ndarray,
               push: Push | None = None) -> tuple[BodyPair, jnp.ndarray]:  # fmt: skip
     """One sequential-impulse update of scalar row i (static) of `rows`; impulses: (R,) accumulated.
-    push: how the row moves the bodies, if not as its own (`Push`)."""
+    push: how the row moves the bodies (`Push` of this row, fields (3,)), if not as its own."""
     speed = _relative_speed(pair, rows.linear[i], rows.angular_a[i], rows.angular_b[i])
     candidate = impulses[i] - rows.mass[i] * (speed + rows.bias[i]) - rows.mix[i] * impulses[i]
     step = jnp.clip(candidate, rows.lower[i], rows.upper[i]) - impulses[i]
-    along = rows if push is None else push
-    pair = _push(pair, along.linear[i][None], along.turn_a[i][None], along.turn_b[i][None], step[None])
+    along = Push(rows.linear[i], rows.turn_a[i], rows.turn_b[i]) if push is None else push
+    pair = _push(pair, along.linear[None], along.turn_a[None], along.turn_b[None], step[None])
     return pair, impulses.at[i].add(step)
 
 
@@ -254,13 +254,13 @@ def solve_drive_beside_rotor(pair: BodyPair, rows: Rows, drive: int, rotor: int,
                              rotor_share: jnp.ndarray) -> tuple[BodyPair, jnp.ndarray]:  # fmt: skip
     """One update of scalar row `drive` right after the rotor row `rotor` of its coordinate, the
     two as one block (the comment above): `solve_row` with the drive's mass and mix from the
-    rotor-relaxed response and push (`Push`) mix_r times its own, and the rotor's impulse moved
-    by rotor_share x_d (rotor_share: (R,), the drive's mix_r - 1; 0 where the rotor is inactive,
+    rotor-relaxed response and push (`Push`, fields (3,)) mix_r times its own, and the rotor's
+    impulse moved by rotor_share x_d (rotor_share: (), mix_r - 1; 0 where the rotor is inactive,
     where this is `solve_row`). Returns (pair, impulses (R,))."""
     before = impulses[drive]
     pair, impulses = solve_row(pair, rows, drive, impulses, push)
     rotor_row = np.arange(impulses.shape[-1]) == rotor  # a mask, not .at[rotor]: one kernel fewer per sweep
-    return pair, impulses + jnp.where(rotor_row, rotor_share[drive] * (impulses[drive] - before), 0.0)
+    return pair, impulses + jnp.where(rotor_row, rotor_share * (impulses[drive] - before), 0.0)
 
 
 def solve_drive_block_beside_rotor(pair: BodyPair, drive: Block, impulse: jnp.ndarray, push: Push,
@@ -308,12 +308,14 @@ def point_hold(pair: BodyPair, point: Block, linear, angular_a, angular_b):
 # ---------------------------------------------------------------------------------- joints
 
 # Impulses of one joint: the ball drive block, the scalar rows, the angular lock, the point and the
-# ball rotor block. Scalar rows: the hinge's and slider's (0-6), the universal lock (7), and per
-# hinge k of a universal or gimbal joint its lower and upper limit and its drive (8 + k, 11 + k,
-# 14 + k); the rotor of degree of freedom k (a hinge's, planar's or slider's: k = 0) is 17 + k.
+# ball rotor block. Scalar rows: the hinge's and slider's motor, limits and cone (0-5), the
+# universal lock (6), per hinge k of a universal or gimbal joint its lower and upper limit (7 + k,
+# 10 + k), then the rows that push with the point held (`_PUSHED`): the hinge's drive (13), the
+# drive of hinge k (14 + k) and the rotor of degree of freedom k (a hinge's, planar's or slider's:
+# k = 0), 17 + k.
 DRIVE_BLOCK = slice(0, 3)
-HINGE_DRIVE, MOTOR, ANGLE_LOWER, ANGLE_UPPER, CONE, TRAVEL_LOWER, TRAVEL_UPPER = range(7)
-UNIVERSAL_LOCK, EULER_LOWER, EULER_UPPER, EULER_DRIVE, ROTOR = 7, 8, 11, 14, 17
+MOTOR, ANGLE_LOWER, ANGLE_UPPER, CONE, TRAVEL_LOWER, TRAVEL_UPPER = range(6)
+UNIVERSAL_LOCK, EULER_LOWER, EULER_UPPER, HINGE_DRIVE, EULER_DRIVE, ROTOR = 6, 7, 10, 13, 14, 17
 NUM_SCALARS = 20
 SCALARS = slice(3, 3 + NUM_SCALARS)
 LOCK = slice(23, 26)
@@ -335,18 +337,20 @@ _SCALAR_ROWS = (
 # joint's drive of hinge k and rotor k.
 _BESIDE_ROTOR = ((HINGE_DRIVE, ROTOR), *((EULER_DRIVE + k, ROTOR + k) for k in range(3)))
 _SOFT = np.isin(np.arange(NUM_SCALARS), [HINGE_DRIVE, *range(EULER_DRIVE, EULER_DRIVE + 3), *range(ROTOR, ROTOR + 3)])
-# The scalar rows that push with the joint point held (`point_hold`); a slice, not an index array:
-# a NumPy int64 index array met int32 indices after a float64 test in the same process.
+# The rotor rows, whose K is taken with the joint point held (`point_hold`), and the rows that push
+# with it held (the rotors and, beside an active rotor, the drives); slices, not index arrays: a
+# NumPy int64 index array met int32 indices after a float64 test in the same process.
 _HELD = slice(ROTOR, ROTOR + 3)
+_PUSHED = slice(HINGE_DRIVE, NUM_SCALARS)
 
 
 class JointRows(NamedTuple):
     """Every row of one joint: ball drive (Block), NUM_SCALARS scalar rows (Rows), angular lock,
-    point, ball rotor (Block); for the scalar rows, the ball rotor and the ball drive, the point
-    impulse per unit impulse of those that push with the point held (`point_hold`; *_hold
-    (NUM_SCALARS, 3), (3, 3), (3, 3), zero for the others) and how they move the bodies, point
-    impulses and all (*_push: `Push`); and what a drive's step beside its rotor moves the rotor's
-    impulse by, per unit (`solve_drive_beside_rotor`): scalar_rotor_share (NUM_SCALARS,),
+    point, ball rotor (Block); for the scalar rows of `_PUSHED` (P of them), the ball rotor and
+    the ball drive, the point impulse per unit impulse where they push with the point held
+    (`point_hold`; *_hold (P, 3), (3, 3), (3, 3), zero where not) and how they move the bodies,
+    point impulses and all (*_push: `Push`); and what a drive's step beside its rotor moves the
+    rotor's impulse by, per unit (`solve_drive_beside_rotor`): scalar_rotor_share (P,),
     drive_rotor_share (3, 3)."""
 
     drive: Block
@@ -609,9 +613,11 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     else:
         lock = block(pair, jnp.zeros((3, 3), dtype), eye, eye, zero3, False)
 
-    result = JointRows(drive, scalars, lock, point, rotor, scalar_hold, rotor_hold, drive_hold,
-                       held_push(scalars, point, scalar_hold, carry), held_push(rotor, point, rotor_hold), drive_push,
-                       scalar_rotor_share, drive_rotor_share)  # fmt: skip
+    pushed = Push(scalars.linear[_PUSHED], scalars.turn_a[_PUSHED], scalars.turn_b[_PUSHED])
+    scalar_push = held_push(pushed, point, scalar_hold[_PUSHED], carry[_PUSHED])
+    result = JointRows(drive, scalars, lock, point, rotor, scalar_hold[_PUSHED], rotor_hold, drive_hold, scalar_push,
+                       held_push(rotor, point, rotor_hold), drive_push, scalar_rotor_share[_PUSHED],
+                       drive_rotor_share)  # fmt: skip
     dv, dw = _warm(pair, [(drive, impulses[DRIVE_BLOCK]), (scalars, impulses[SCALARS]), (lock, impulses[LOCK]),
                           (point, impulses[POINT]), (rotor, impulses[ROTOR_BLOCK])])  # fmt: skip
     return result, impulses, dv, dw
@@ -642,18 +648,18 @@ def solve_joint(joint_rows: JointRows, bodies: BodySet, impulses: jnp.ndarray, r
     scalars = impulses[SCALARS]
     in_use = _scalar_rows_in_use(rows)
     beside_rotor = {drive: rotor for drive, rotor in _BESIDE_ROTOR if drive in in_use and rotor in in_use}
-    pushes = joint_rows.scalar_push
     for i in in_use:
         before = scalars[i]
+        pushed = i - _PUSHED.start  # the row's place in the `_PUSHED` arrays
+        with_point = i in beside_rotor or ROTOR <= i < ROTOR + 3  # (a drive only where a rotor is traced)
+        push = Push(*(field[pushed] for field in joint_rows.scalar_push)) if with_point else None
         if i in beside_rotor:
-            pair, scalars = solve_drive_beside_rotor(pair, joint_rows.scalars, i, beside_rotor[i], scalars, pushes,
-                                                     joint_rows.scalar_rotor_share)  # fmt: skip
-        elif ROTOR <= i < ROTOR + 3:
-            pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars, pushes)
+            pair, scalars = solve_drive_beside_rotor(pair, joint_rows.scalars, i, beside_rotor[i], scalars, push,
+                                                     joint_rows.scalar_rotor_share[pushed])  # fmt: skip
         else:
-            pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars)
-        if i in beside_rotor or ROTOR <= i < ROTOR + 3:  # the rows that push with the point held
-            point_impulse = held(point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[i][None])
+            pair, scalars = solve_row(pair, joint_rows.scalars, i, scalars, push)
+        if with_point:
+            point_impulse = held(point_impulse, (scalars[i] - before)[None], joint_rows.scalar_hold[pushed][None])
     impulses = impulses.at[SCALARS].set(scalars).at[POINT].set(point_impulse)
     if "rotation_lock" in rows:
         pair, value = solve_block(pair, joint_rows.lock, impulses[LOCK])
