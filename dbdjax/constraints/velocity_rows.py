@@ -328,22 +328,12 @@ _SCALAR_ROWS = (
 # (drive row, rotor row) on one coordinate: a hinge's drive and its rotor, a universal or gimbal
 # joint's drive of hinge k and rotor k.
 _BESIDE_ROTOR = ((HINGE_DRIVE, ROTOR), *((EULER_DRIVE + k, ROTOR + k) for k in range(3)))
-_DRIVES = slice(HINGE_DRIVE, EULER_DRIVE + 3)  # the drive rows of _BESIDE_ROTOR, in its order
 _SOFT = np.isin(np.arange(NUM_SCALARS), [HINGE_DRIVE, *range(EULER_DRIVE, EULER_DRIVE + 3), *range(ROTOR, ROTOR + 3)])
 # The rotor rows, whose K is taken with the joint point held (`point_hold`), and the rows that push
 # with it held (the rotors and, beside an active rotor, the drives); slices, not index arrays: a
 # NumPy int64 index array met int32 indices after a float64 test in the same process.
 _HELD = slice(ROTOR, ROTOR + 3)
 _PUSHED = slice(HINGE_DRIVE, NUM_SCALARS)
-
-
-def _at_drives(rotor_values: jnp.ndarray) -> jnp.ndarray:
-    """The rotor rows' values (3, ...) placed at their drives' rows (`_DRIVES`, `_BESIDE_ROTOR`)."""
-    return jnp.concatenate([rotor_values[:1], rotor_values])
-
-
-assert [drive for drive, _ in _BESIDE_ROTOR] == list(range(_DRIVES.start, _DRIVES.stop))
-assert [rotor for _, rotor in _BESIDE_ROTOR] == [ROTOR, ROTOR, ROTOR + 1, ROTOR + 2]  # what _at_drives places
 
 
 class JointRows(NamedTuple):
@@ -573,25 +563,28 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     bias, lower, upper, softness = (jnp.stack([jnp.asarray(entry[k], dtype) for entry in scalar]) for k in (3, 4, 5, 7))
     active = jnp.stack([jnp.asarray(entry[6], bool) for entry in scalar])
     scalar_hold, held, relaxed = jnp.zeros((NUM_SCALARS, 3), dtype), 0.0, 0.0
-    rotors = rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}
-    if rotors:
+    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
         hold, held = point_hold(pair, point, linear[_HELD], angular_a[_HELD], angular_b[_HELD])
-        held = jnp.diagonal(held)
-        # A drive beside an active rotor (the rotor row is active only with armature) pushes with
-        # the point held too, with the rotor-relaxed response (`solve_drive_beside_rotor`).
-        rotor_on = _at_drives(active[_HELD])
-        drive_hold = jnp.where(rotor_on[:, None], _at_drives(hold), 0.0)
-        scalar_hold = scalar_hold.at[_HELD].set(hold).at[_DRIVES].set(drive_hold)
-        drive_held = jnp.where(rotor_on, _at_drives(held), 0.0)
-        held = jnp.zeros(NUM_SCALARS, dtype).at[_HELD].set(held).at[_DRIVES].set(drive_held)
-        relaxed = jnp.zeros(NUM_SCALARS, dtype).at[_DRIVES].set(jnp.where(rotor_on, _at_drives(softness[_HELD]), 0.0))
+        scalar_hold = scalar_hold.at[_HELD].set(hold)
+        held = jnp.zeros(NUM_SCALARS, dtype).at[_HELD].set(jnp.diagonal(held))
+        relaxed = jnp.zeros(NUM_SCALARS, dtype)
+        # A drive beside an active rotor pushes with the point held too, with the rotor-relaxed
+        # response (`solve_drive_beside_rotor`).
+        for drive_row, rotor_row in _BESIDE_ROTOR:
+            rotor_on = active[rotor_row]  # the rotor row is active only with armature
+            scalar_hold = scalar_hold.at[drive_row].set(jnp.where(rotor_on, scalar_hold[rotor_row], 0.0))
+            held = held.at[drive_row].set(jnp.where(rotor_on, held[rotor_row], 0.0))
+            relaxed = relaxed.at[drive_row].set(jnp.where(rotor_on, softness[rotor_row], 0.0))
     scalars = scalar_rows(pair, linear, angular_a, angular_b, bias, lower, upper, active, softness, _SOFT, held,
                           relaxed)  # fmt: skip
     # A drive beside an active rotor moves the bodies (and the point) by mix_r x_d and the rotor's
-    # impulse by (mix_r - 1) x_d (`solve_drive_beside_rotor`); every other row carries 1.
-    carry = jnp.ones(NUM_SCALARS, dtype)
-    if rotors:
-        carry = carry.at[_DRIVES].set(jnp.where(rotor_on, _at_drives(scalars.mix[_HELD]), 1.0))  # 1 / (1 + I_r K')
+    # impulse by (mix_r - 1) x_d (`solve_drive_beside_rotor`).
+    carry, scalar_rotor_share = jnp.ones(NUM_SCALARS, dtype), jnp.zeros(NUM_SCALARS, dtype)
+    if rows & {"rotor_hinge", "rotor_slider", "rotor_euler"}:
+        for drive_row, rotor_row in _BESIDE_ROTOR:
+            share = jnp.where(active[rotor_row], scalars.mix[rotor_row], 1.0)  # mix_r = 1 / (1 + I_r K')
+            carry = carry.at[drive_row].set(share)
+            scalar_rotor_share = scalar_rotor_share.at[drive_row].set(share - 1.0)
         scalar_hold = carry[:, None] * scalar_hold
 
     # Angular lock, a block over the plane across the axle (hinge, planar: SI (86)-(90), the error
@@ -615,7 +608,7 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     pushed = Push(scalars.linear[_PUSHED], scalars.turn_a[_PUSHED], scalars.turn_b[_PUSHED])
     scalar_push = held_push(pushed, point, scalar_hold[_PUSHED], carry[_PUSHED])
     result = JointRows(drive, scalars, lock, point, rotor, scalar_hold[_PUSHED], rotor_hold, drive_hold, scalar_push,
-                       held_push(rotor, point, rotor_hold), drive_push, carry[_PUSHED] - 1.0,
+                       held_push(rotor, point, rotor_hold), drive_push, scalar_rotor_share[_PUSHED],
                        drive_rotor_share)  # fmt: skip
     dv, dw = _warm(pair, [(drive, impulses[DRIVE_BLOCK]), (scalars, impulses[SCALARS]), (lock, impulses[LOCK]),
                           (point, impulses[POINT]), (rotor, impulses[ROTOR_BLOCK])])  # fmt: skip
