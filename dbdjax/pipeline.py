@@ -12,9 +12,9 @@ step(model, state, control):
     solver="impulse":
     X*, V*  = solvers.impulse.predict(model, state, h)             SI (12): V* = V + h M^-1 F_ext
     slots   = collision.detect(model, state, X*, h)                the same slots
-    dV, lam, r = solvers.impulse.solve(model, state, V*, ...)      sequential impulses, warm-started
-    V'      = solvers.dbd.rotor_momentum(model, (X, V* + dV), r, h)  the same rotor pass
-    state   = solvers.impulse.integrate((X, V'), lam, h)           SI (12): X' = X + h V'
+    dV, lam = solvers.impulse.solve(model, state, V*, ...)         sequential impulses, warm-started,
+                                                                   then the same rotor pass
+    state   = solvers.impulse.integrate((X, V* + dV), lam, h)      SI (12): X' = X + h V'
 """
 
 from __future__ import annotations
@@ -61,9 +61,8 @@ def substep(model: Model, state: State, control: jnp.ndarray | None, h: float) -
     if model.options.solver == "impulse":
         predicted = impulse.predict(model, state, h, control)
         slots = collision.detect(model, state, predicted, h)
-        velocity, spin, impulses, rotor_excess = impulse.solve(model, state, predicted, control, slots, h)
+        velocity, spin, impulses, _ = impulse.solve(model, state, predicted, control, slots, h)
         solved = impulse.solved_velocities(state, predicted, velocity, spin)
-        solved = dbd.rotor_momentum(model, solved, rotor_excess, h)
         return impulse.integrate(solved, impulses, h)
     predicted = integrator.predict(model, state, h, control)
     slots = collision.detect(model, state, predicted, h)

@@ -290,14 +290,15 @@ def rotor_energy(model: Model, state: State) -> jnp.ndarray:
     return 0.5 * jnp.sum(energy)
 
 
-def rotor_inertia(model: Model, state: State) -> jnp.ndarray:
+def rotor_inertia(model: Model, state: State, on_body_a: bool = True) -> jnp.ndarray:
     """(N, 3, 3) kg m^2, world frame: the joints' rotors' inertia as each body sees it with the
     other body of its joint held, armature d d^T per rotating degree of freedom (d = dq/dtheta: a
     hinge's axis, a universal / gimbal hinge's angle gradient, any direction for a ball) on both
-    bodies. For the restitution pass, which moves the bodies of its contacts alone: without it a
-    foot's spin about its knee is as cheap as its own inertia makes it, and the rotor, whose rate
-    the bodies' velocities carry, takes that spin at no cost (`contacts.project_restitution`).
-    Sliders' rotors are left out (their inertia is a mass along the axis)."""
+    bodies (on_body_a False: on body b alone, the child of an MJCF joint). For the restitution
+    pass, which moves the bodies of its contacts alone: without it a foot's spin about its knee is
+    as cheap as its own inertia makes it, and the rotor, whose rate the bodies' velocities carry,
+    takes that spin at no cost (`contacts.project_restitution`). Sliders' rotors are left out
+    (their inertia is a mass along the axis)."""
     structure = model.structure
     flag = flags(structure)
     n = structure.num_bodies
@@ -315,8 +316,10 @@ def rotor_inertia(model: Model, state: State) -> jnp.ndarray:
         _, gradients = math.euler_angles(axes_a, axes_b, flag.universal)  # (J, 3, 3): row k = dq_k/dtheta_b
         euler = jnp.where(flag.rotor_euler, armature, 0.0)
         added = added + jnp.einsum("jk,jki,jkl->jil", euler, gradients, gradients)
-    both = jnp.zeros((n + 1, 3, 3), added.dtype).at[a].add(added).at[b].add(added)
-    return both[:n]
+    inertia = jnp.zeros((n + 1, 3, 3), added.dtype).at[b].add(added)
+    if on_body_a:
+        inertia = inertia.at[a].add(added)
+    return inertia[:n]
 
 
 def padded_control(structure: Structure, control: jnp.ndarray | None, dtype) -> jnp.ndarray:

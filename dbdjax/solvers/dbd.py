@@ -387,9 +387,21 @@ def rotor_momentum(model: Model, state: State, excess: jnp.ndarray | None, h: fl
     taken back in ROTOR_PASS_SWEEPS Gauss-Seidel sweeps over the rotor joints' own colouring, kind
     by kind as the position sweeps' (`colouring.kind_classes`): each colour projects one kind.
     The impulse solver runs the same pass on its solved velocities at the start pose, with its
-    velocity rows' residuals (`velocity_rows.rotor_excess`)."""
+    velocity rows' residuals (`velocity_rows.rotor_excess`), between sweeps of its joints' points
+    (`solvers.impulse.solve`)."""
     if excess is None:
         return state
+    table = body_table(model, state, h)
+    dv, dw = rotor_pass(model, table, excess, h)
+    n = model.num_bodies
+    return State(pos=state.pos, quat=state.quat, vel=state.vel + dv[:n], ang_vel=state.ang_vel + dw[:n])
+
+
+def rotor_pass(model: Model, table: BodySet, excess: jnp.ndarray, h: float) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """`rotor_momentum`'s sweeps on `table` (velocities in vel/ang_vel; dx/dtheta the changes so
+    far, which the pass continues from: its targets are set by vel/ang_vel and `excess`, so a
+    second pass after other changes takes the rates back to the same targets, not further).
+    Returns the velocity changes (dv, dw) (N + 1, 3), the earlier ones included."""
     nodes = rotor_joints(model)
     structure = model.structure
 
@@ -405,10 +417,20 @@ def rotor_momentum(model: Model, state: State, excess: jnp.ndarray | None, h: fl
                                variants=tuple((members, project(rows)) for members, rows in kinds))  # fmt: skip
     classes = colouring.kind_classes([members for members, _ in kinds], len(nodes))
     colours = colouring.colour_groups([family.bodies], structure.num_bodies, classes=[classes])
-    dv, dw, _ = gauss_seidel(colours, [family], body_table(model, state, h), ROTOR_PASS_SWEEPS,
-                             [jnp.zeros((len(nodes), 3), state.pos.dtype)])  # fmt: skip
-    n = model.num_bodies
-    return State(pos=state.pos, quat=state.quat, vel=state.vel + dv[:n], ang_vel=state.ang_vel + dw[:n])
+    dv, dw, _ = gauss_seidel(colours, [family], table, ROTOR_PASS_SWEEPS, [jnp.zeros((len(nodes), 3), table.dx.dtype)])
+    return dv, dw
+
+
+def with_rotors(model: Model, state: State, table: BodySet, on_body_a: bool = True) -> BodySet:
+    """`table` with each body's inverse inertia taken with its joints' rotors (armature) on it
+    (`joints.rotor_inertia`, on both bodies of each joint or, on_body_a False, on its body b):
+    for the passes that move bodies without the rotor rows, whose rotors, rigidly on their
+    coordinates' rates, must turn with them."""
+    if not model.structure.joint_rotor.array.any():
+        return table
+    rotors = joints.rotor_inertia(model, state, on_body_a)
+    inverse = math.inverse3(integrator.world_inertia(model, state) + rotors)
+    return table._replace(inv_inertia=with_world_row(inverse))
 
 
 def restitution(
@@ -419,12 +441,9 @@ def restitution(
     if not contacts:
         return state
     families = constraints.restitution_families(model, contacts, h)
-    table = body_table(model, state, h)
-    if model.structure.joint_rotor.array.any():
-        # The pass moves its contacts' bodies alone; each body's rotors (armature) resist its turn
-        # about their axes as they resist the joint's (`joints.rotor_inertia`).
-        inverse = math.inverse3(integrator.world_inertia(model, state) + joints.rotor_inertia(model, state))
-        table = table._replace(inv_inertia=with_world_row(inverse))
+    # The pass moves its contacts' bodies alone; each body's rotors (armature) resist its turn
+    # about their axes as they resist the joint's.
+    table = with_rotors(model, state, body_table(model, state, h))
     dv, dw, _ = gauss_seidel(model.structure.contact_colours, families, table, model.options.restitution_iterations,
                               list(normal))  # fmt: skip
     n = model.num_bodies
