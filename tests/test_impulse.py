@@ -555,9 +555,9 @@ def test_the_rotor_pass_keeps_the_joints_it_does_not_own_together():
     """The rotor pass holds each joint's own point while it takes its rotor's unpaid spin back, but
     it moves bodies other joints share (an ant's upper leg, between hip and ankle). Brax's ant 5 m
     up under uniform random control (seed 0; gear 150 on 40-70 g legs, armature 1) for 10 steps
-    at its dt: with the pass alone its hips opened by 46 mm (0.4-0.8 m/s at their points after
-    the first pass); with a sweep of the joints' points after each pass (`impulse.rotor_pass`) the
-    largest gap is 2.4 mm (measured)."""
+    at its dt: with the pass alone its hips opened by 46 mm (their points parted at 0.76-0.88
+    m/s after the first step's pass, 0-0.43 before it); with a sweep of the joints' points after
+    each pass (`impulse.rotor_pass`) the largest gap is 2.4 mm (measured)."""
     xml = (ASSETS / "ant.xml").read_text().replace('name="torso" pos="0 0 0.75"', 'name="torso" pos="0 0 5.75"')
     model = dbd.load_mjcf(xml, solver="impulse")
     low, high = model.control_range[:, 0], model.control_range[:, 1]

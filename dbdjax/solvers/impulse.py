@@ -152,19 +152,20 @@ def rotor_pass(model: Model, solved: State, joint_family: Family, table, joint_i
                excess: jnp.ndarray, h: float) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:  # fmt: skip
     """The rotor pass (`solvers.dbd.rotor_pass`: the rotors' spin the sweeps gave with no impulse
     behind it, `excess` (R, 3), taken back) and the joints' points held after it, ROTOR_PASS_ROUNDS
-    times. Each joint's pass holds its own point, but it moves bodies that other joints share
-    (a leg's thigh between hip and knee), and the velocity error it leaves at their points has no
-    position solve after it here: X' = X + h V' keeps it, and only the Baumgarte bias of the next
-    substeps pulls it back. Brax's ant under random control (gear 150 on 40 g legs, armature 1)
-    opened its hips by 46 mm in the air that way (5 mm with no pass; the pass put 0.4-0.8 m/s on
-    the hips' points in the first step). So a sweep of the joints' point blocks follows each pass,
-    the next pass takes the rates back to its targets, the next sweep the points. In the point
-    sweeps each body b carries its joints' rotors (`solvers.dbd.with_rotors`, on body b): a
-    rotor turns with the child it drives, and so the sweep closes a point by moving the light
-    bodies rather than by spinning them back up (with the bodies' own inertia the sweep put
-    54 J back into the dropped ant's rotors; with the rotors on both bodies it also resisted the
-    whole ant's common turn, and the ant in the air drifted further from MuJoCo: 0.0069 rad
-    against 0.0035 on seed 1 of tests/test_mjcf.py's scene).
+    times. Each joint's pass holds its own point, but it moves bodies that other joints share (an
+    ant's upper leg, between hip and ankle), and the velocity error it leaves at their points has
+    no position solve after it here: X' = X + h V' keeps it, and only the Baumgarte bias of the
+    next substeps pulls it back. Brax's ant under random control (gear 150 on 40-70 g legs,
+    armature 1) opened its hips by 46 mm in the air that way (13 mm with no pass; after the first
+    step's pass its hips' points parted at 0.76-0.88 m/s, 0-0.43 before it). So a sweep of the
+    joints' point blocks follows each pass; the next pass takes the rates back to its targets,
+    the next sweep the points. In the point sweeps each body b carries its joints' rotors
+    (`solvers.dbd.with_rotors`, on body b): a rotor turns with the child it drives, and so the
+    sweep closes a point by moving the light bodies rather than by spinning them back up. With
+    the bodies' own inertia the dropped ant's rotors took 6.3 J at landing in three rounds (54 J
+    in one); with the rotors on both bodies of each joint the sweep also resisted the whole ant's
+    common turn, and the ant in the air drifted further from MuJoCo (0.0069 rad against 0.0035 on
+    seed 1 of tests/test_mjcf.py's scene).
 
     solved: the start pose with the sweeps' velocities V* + dV. joint_family: the joints' prepared
     velocity family. table: the sweeps' body table (velocities V*, dx/dtheta their dV (N + 1, 3)).
