@@ -256,6 +256,15 @@ def safe_normalize(v: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     return unit, jnp.where(is_zero, 0.0, norm)
 
 
+def clamp_norm(v: jnp.ndarray, bound) -> jnp.ndarray:
+    """v (3,) scaled back onto |v| <= bound () (bound = inf: v unchanged), with a finite gradient:
+    a drive's torque bound (DBD (114)), a velocity block's impulse bound, a friction disc."""
+    direction, size = safe_normalize(v)
+    limited = jnp.isfinite(bound)  # an unlimited bound is stored as inf: keep it out of the products
+    finite_bound = jnp.where(limited, bound, 0.0)
+    return jnp.where(limited & (size > finite_bound), finite_bound * direction, v)
+
+
 def any_perpendicular(u: jnp.ndarray) -> jnp.ndarray:
     """A unit vector perpendicular to unit u (..., 3): u x e_k for the basis vector least aligned
     with u (chosen by comparisons, first on ties, so the choice is deterministic)."""

@@ -546,7 +546,7 @@ def _spring_torque_step(multiplier, error, drift, inverse_inertia, relaxation, s
     residual = multiplier + stiffness_h2 * error + damping_h * drift
     system = jnp.eye(3, dtype=error.dtype) + (stiffness_h2 + damping_h) * inverse_inertia
     candidate = multiplier - relaxation * math.matvec(math.inverse3(system), residual)
-    candidate = _bounded_torque(candidate, bound)
+    candidate = math.clamp_norm(candidate, bound)  # (114)
     return jnp.where(active, candidate - multiplier, 0.0)
 
 
@@ -560,14 +560,6 @@ def angular_spring_response(pair: BodyPair, hold: PointHold | None) -> tuple[jnp
     opens = math.skew(hold.arm_a) @ pair.inv_inertia_a + math.skew(hold.arm_b) @ pair.inv_inertia_b
     held = inverse_inertia - opens.T @ hold.solve @ opens
     return held, -math.matvec(opens.T, math.matvec(hold.solve, hold.gap))
-
-
-def _bounded_torque(candidate: jnp.ndarray, bound) -> jnp.ndarray:
-    """kappa within |kappa| <= bound (114); bound inf: unlimited."""
-    direction, size = math.safe_normalize(candidate)
-    limited = jnp.isfinite(bound)  # an unlimited drive stores bound = inf: keep inf out of the products
-    finite_bound = jnp.where(limited, bound, 0.0)
-    return jnp.where(limited & (size > finite_bound), finite_bound * direction, candidate)
 
 
 def _turned_by_torque(pair: BodyPair, hold: PointHold | None, step: jnp.ndarray):

@@ -215,21 +215,13 @@ def solve_row(pair: BodyPair, rows: Rows, i: int, impulses: jnp.ndarray,
     return pair, impulses.at[i].add(step)
 
 
-def clamp_norm(vector, bound):
-    """vector scaled back onto |vector| <= bound (bound = inf: unchanged), with a finite gradient."""
-    direction, size = math.safe_normalize(vector)
-    limited = jnp.isfinite(bound)  # keep inf out of the products
-    finite_bound = jnp.where(limited, bound, 0.0)
-    return jnp.where(limited & (size > finite_bound), finite_bound * direction, vector)
-
-
 def solve_block(pair: BodyPair, rows: Block, impulse: jnp.ndarray,
                 push: Push | None = None) -> tuple[BodyPair, jnp.ndarray]:  # fmt: skip
     """One update of a block (3,): d lambda = -mass (J v + b) - mix lambda, |lambda| <= bound.
     push: how the rows move the bodies, if not as their own (`Push`)."""
     speed = _relative_speed(pair, rows.linear, rows.angular_a, rows.angular_b)
     candidate = impulse - math.matvec(rows.mass, speed + rows.bias) - math.matvec(rows.mix, impulse)
-    step = clamp_norm(candidate, rows.bound) - impulse
+    step = math.clamp_norm(candidate, rows.bound) - impulse
     along = rows if push is None else push
     return _push(pair, along.linear, along.turn_a, along.turn_b, step), impulse + step
 
@@ -732,7 +724,7 @@ class ContactRows(NamedTuple):
 def _clamp_disc(vector, bound):
     """A 2-vector scaled back onto |vector| <= bound (the friction cone of SI (31))."""
     padded = jnp.concatenate([vector, jnp.zeros(1, vector.dtype)])
-    return clamp_norm(padded, bound)[:2]
+    return math.clamp_norm(padded, bound)[:2]
 
 
 def prepare_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, impulses: jnp.ndarray, h: float,
