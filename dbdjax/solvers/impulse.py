@@ -180,12 +180,17 @@ def rotor_pass(model: Model, solved: State, joint_family: Family, table, joint_i
                     velocity.JOINT_IMPULSES)  # fmt: skip
     colours = colouring.colour_groups([family.bodies], structure.num_bodies)
     swept_dv, swept_dw = table.dx, table.dtheta
-    dv, dw = swept_dv, swept_dw
-    for _ in range(ROTOR_PASS_ROUNDS):
+
+    def round_(carry, _):  # one pass, then the points; a scan, so that the rounds compile once
+        dv, dw, joint_impulses = carry
         changes = pass_table._replace(dx=dv - swept_dv, dtheta=dw - swept_dw)
         pass_dv, pass_dw = dbd.rotor_pass(model, changes, excess, h)
-        dv, dw, (joint_impulses,) = dbd.gauss_seidel(colours, [family], heavy._replace(dx=swept_dv + pass_dv,
-                                                     dtheta=swept_dw + pass_dw), 1, [joint_impulses])  # fmt: skip
+        moved = heavy._replace(dx=swept_dv + pass_dv, dtheta=swept_dw + pass_dw)
+        dv, dw, (joint_impulses,) = dbd.gauss_seidel(colours, [family], moved, 1, [joint_impulses])
+        return (dv, dw, joint_impulses), None
+
+    (dv, dw, joint_impulses), _ = jax.lax.scan(round_, (swept_dv, swept_dw, joint_impulses), None,
+                                               length=ROTOR_PASS_ROUNDS)  # fmt: skip
     return dv, dw, joint_impulses
 
 
