@@ -76,14 +76,15 @@ DBDJAX_VARIANTS = {
 }
 
 
-def dbdjax_engine(xml: Path, solver: str) -> Engine:
+def dbdjax_engine(xml: Path, solver: str, substeps: int = 1) -> Engine:
     """solver: a key of DBDJAX_VARIANTS: "dbd", "impulse", "dbd-tree" (DBD with `tree_solve`: the
     direct solves of the joint tree, solvers/tree.py), "dbd-tree-1" (the same with one sweep instead
     of DBD_ITERATIONS), "jacobi-tree" (with Jacobi sweeps in place of the coloured Gauss-Seidel
-    ones) or "dbd-trailing" (DBD, a batch mapped by `dbd.vmap` instead of `jax.vmap`)."""
+    ones) or "dbd-trailing" (DBD, a batch mapped by `dbd.vmap` instead of `jax.vmap`). substeps:
+    per physics step (1 here; `random_controls.py --substeps` tries more)."""
     if solver not in DBDJAX_VARIANTS:
         raise ValueError(f"unknown dbdjax engine {solver!r}: one of {sorted(DBDJAX_VARIANTS)}")
-    kwargs = {"substeps": 1, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]}
+    kwargs = {"substeps": substeps, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]}
     model = dbd.load_mjcf(xml, **kwargs)
     remat_model = dbd.load_mjcf(xml, checkpoint=True, **kwargs)
     control_range = np.asarray(model.control_range)

@@ -1,6 +1,7 @@
 """How wild each engine runs a model under random controls: Brax's ant (or humanoid) dropped from
 its build pose, `--batch` copies each driven by its own uniform random controls in the actuators'
-ctrlrange for `--steps` steps (dbdjax: one physics step per call, 1 substep), and the same controls
+ctrlrange for `--steps` steps (dbdjax: one physics step per call, `--substeps` substeps, 1 unless
+given), and the same controls
 stepped by MuJoCo itself (`mujoco.mj_step` at the XML's options) as the physics to compare with.
 
 Per copy: the largest body speed (m/s) and spin (rad/s) over the rollout, and for dbdjax the
@@ -25,10 +26,10 @@ import machine
 import numpy as np
 
 
-def dbdjax_spread(xml: Path, variant: str, steps: int, batch: int, seed: int) -> dict:
+def dbdjax_spread(xml: Path, variant: str, steps: int, batch: int, seed: int, substeps: int = 1) -> dict:
     """Per copy: largest body speed, spin and joint gap over the rollout of a `brax_comparison`
-    dbdjax variant (its settings: 1 substep, DBD_ITERATIONS sweeps unless the variant says)."""
-    engine = brax_comparison.dbdjax_engine(xml, variant)
+    dbdjax variant (its settings: `substeps`, DBD_ITERATIONS sweeps unless the variant says)."""
+    engine = brax_comparison.dbdjax_engine(xml, variant, substeps)
     drive = brax_comparison.random_controls(engine, (steps, batch), seed)
     state = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), engine.init())
 
@@ -78,6 +79,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--substeps", type=int, default=1, help="dbdjax's substeps per step (MuJoCo's: 1)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     xml = brax_comparison.ASSETS / f"{args.model}.xml"
@@ -86,7 +88,7 @@ def main() -> None:
         if engine == "mujoco":
             results[engine] = mujoco_spread(xml, args.steps, args.batch, args.seed)
         else:
-            results[f"dbdjax-{engine}"] = dbdjax_spread(xml, engine, args.steps, args.batch, args.seed)
+            results[f"dbdjax-{engine}"] = dbdjax_spread(xml, engine, args.steps, args.batch, args.seed, args.substeps)
     print(f"{args.model}: {args.batch} copies x {args.steps} steps of random controls (seed {args.seed})")
     print(f"{'engine':<20} {'speed median / max (m/s)':>26} {'spin max (rad/s)':>17} {'gap median / max (mm)':>23}")
     for engine, spread in results.items():
@@ -97,7 +99,8 @@ def main() -> None:
     out = args.out or brax_comparison.RESULTS / f"random_controls_{args.model}.json"
     out.write_text(json.dumps({
         "machine": machine.describe(), "model": args.model, "steps": args.steps, "batch": args.batch,
-        "seed": args.seed, "dbdjax": f"1 substep, {brax_comparison.DBD_ITERATIONS} iterations (dbd-tree-1: 1), float32",
+        "seed": args.seed,
+        "dbdjax": f"{args.substeps} substep(s), {brax_comparison.DBD_ITERATIONS} iterations (dbd-tree-1: 1), float32",
         "engines": results}, indent=1) + "\n")  # fmt: skip
     print(f"wrote {out}")
 
