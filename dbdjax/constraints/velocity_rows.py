@@ -110,13 +110,16 @@ def point_turn_bias(pair: BodyPair, arm_a: jnp.ndarray, arm_b: jnp.ndarray, h: f
     """(3,) the bias (m/s) that keeps a joint point shut through the turn of its arms over the substep.
 
     The rows are taken at the start pose, J v = d/dt (p_b - p_a) there, but X' = X + h V' turns
-    each arm r by exp(h w) (`integrator.displaced_quat`): p_b - p_a moves by h J v + (h^2 / 2) q,
-    q = w_b x (w_b x r_b) - w_a x (w_a x r_a), the arms' centripetal part, to second order. With
-    b = (h / 2) q beside the Baumgarte term the point closes to O(h^3) per substep (w: V*, the
-    rows' best guess of w'), where without it a turning joint opens by (h^2 / 2) |q| a substep
-    and only the Baumgarte bias pulls it back, C / h at a time, at the price of a speed the
-    rotors keep (README, "The Baumgarte bias's default")."""
-    def turn(ang_vel, arm):  # what the turn moves the arm's end beyond h w x r, per second
+    each arm r by exp(h w) (`integrator.displaced_quat`), which moves its end by R(h w) r - r, not
+    h w x r: (h^2 / 2) w x (w x r) more, the centripetal part, to second order. b = that excess / h
+    (of b's arm less a's, w from V*: the rows' best guess of w') beside the Baumgarte term closes
+    the point to O(h^3) a substep where, without it, a turning joint opens by (h^2 / 2) |w|^2 |r| a
+    substep and only the Baumgarte bias pulls it back, at the price of a speed the rotors keep
+    (README, "The Baumgarte bias's default"). The exact turn, not its Taylor term: with w^2 the
+    bias fed back on the unconverged chains of benchmarks/solver_comparison.py (2 sweeps at
+    dt = 1/30) and they blew up in 16-29 steps; R(h w) r - r stays within 2 |r|."""
+
+    def turn(ang_vel, arm):  # how far the arm's end moves beyond h w x r, per second
         return (math.quat_rotate(math.quat_exp(h * ang_vel), arm) - arm) / h - math.cross(ang_vel, arm)
 
     return turn(pair.ang_vel_b, arm_b) - turn(pair.ang_vel_a, arm_a)
