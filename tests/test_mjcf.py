@@ -122,7 +122,8 @@ def test_dropped_ant_under_the_impulse_solver_keeps_its_rotors_from_spinning_up(
     # joint's pass moved bodies its neighbours share and opened their points: at 1 x 4 joint gaps up
     # to 64 mm, pulled shut by the Baumgarte bias (total up to 21 J). With the joints' points swept
     # after each of three passes (impulse.rotor_pass): gaps at most 11 mm, rotors 0.73 J and 0.08 J,
-    # total up to 19.9 J at 1 x 4 (the bodies still gain energy after landing; README).
+    # total up to 19.9 J at 1 x 4 (the bodies still gained energy after landing: the Baumgarte bias's
+    # speed; at session 59's default beta 0.05 with the point's turn bias, no rise and gaps 2.1 mm).
     model, _, trajectory, energy, rotors = _dropped_ant(solver="impulse", substeps=1, iterations=4)
     gaps = np.asarray(diagnostics.joint_gaps(model, trajectory))
     print(f"\nimpulse 1 x 4: rotors' energy at most {rotors.max():.2f} J, total at most {energy.max():.2f} J, "
