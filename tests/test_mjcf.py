@@ -145,7 +145,7 @@ def test_dropped_ant_on_the_impulse_solver_gains_no_energy_at_one_or_four_subste
     # ant: +13.2 J over its start at 1 x 4, +453 J (gaps 79 mm) at 4 x 4, and at 4 x 1 it blew up
     # (+2.7e9 J). At the default 0.05 with the point's turn bias: no rise at 1 x 4 and 4 x 4, +7.0 J
     # at 4 x 1 (one sweep a substep; measured; README, "The Baumgarte bias's default").
-    model, start, trajectory, energy, rotors = _dropped_ant(solver="impulse", substeps=substeps, iterations=iterations)
+    model, start, trajectory, energy, _ = _dropped_ant(solver="impulse", substeps=substeps, iterations=iterations)
     gaps = np.asarray(diagnostics.joint_gaps(model, trajectory))
     rise = energy.max() - float(diagnostics.energy(model, start))
     print(f"\nimpulse {substeps} x {iterations}: energy rise {rise:.2f} J, "

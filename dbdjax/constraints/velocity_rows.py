@@ -404,8 +404,9 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     inf = jnp.asarray(jnp.inf, dtype)
     at_start = pair._replace(vel_a=start[0], vel_b=start[1], ang_vel_a=start[2], ang_vel_b=start[3])
 
-    # Point: C = p_b - p_a (SI (45), (127)) as one block with the 3x3 K (48). A slider keeps the part
-    # across its axis (SI (51)), a planar joint the part along its normal, both acting level with p_b.
+    # Point: C = p_b - p_a (SI (45), (127)) as one block with the 3x3 K (48), its bias the Baumgarte
+    # term and the arms' turn over the substep (`point_turn_bias`). A slider keeps the part across
+    # its axis (SI (51)), a planar joint the part along its normal, both acting level with p_b.
     delta, arm_a, arm_b = joints.joint_points(joint, flag, pair, quat_a, quat_b)  # delta = p_a - p_b
     projector = None
     if "slider" in rows or "planar" in rows:
