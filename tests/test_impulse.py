@@ -559,7 +559,8 @@ def test_the_rotor_pass_keeps_the_joints_it_does_not_own_together():
     up under uniform random control (seed 0; gear 150 on 40-70 g legs, armature 1) for 10 steps
     at its dt: with the pass alone its hips opened by 46 mm (their points parted at 0.76-0.88
     m/s after the first step's pass, 0-0.43 before it); with a sweep of the joints' points after
-    each pass (`impulse.rotor_pass`) the largest gap is 2.4 mm (measured)."""
+    each pass (`impulse.rotor_pass`) the largest gap was 2.4 mm (seeds 0-7: 2.4-3.2 mm), and with
+    session 59's default beta 0.05 and the point's turn bias 0.31 mm (seeds 0-7: 0.31-0.72 mm)."""
     xml = (ASSETS / "ant.xml").read_text().replace('name="torso" pos="0 0 0.75"', 'name="torso" pos="0 0 5.75"')
     model = dbd.load_mjcf(xml, solver="impulse")
     low, high = model.control_range[:, 0], model.control_range[:, 1]
@@ -567,7 +568,7 @@ def test_the_rotor_pass_keeps_the_joints_it_does_not_own_together():
     _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), controls)
     gaps = np.asarray(diagnostics.joint_gaps(model, trajectory))
     print(f"\nant in the air on impulse, 10 steps: largest joint gap {gaps.max() * 1e3:.2f} mm")
-    assert gaps.max() < 0.01
+    assert gaps.max() < 0.002
 
 
 @pytest.mark.slow
