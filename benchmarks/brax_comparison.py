@@ -9,11 +9,14 @@ through 100 / 1000 steps, with and without rematerialisation).
     python benchmarks/brax_comparison.py --tasks accuracy --engines dbdjax-dbd-tree   # one task, one engine
                                                     # (dbd-tree: DBD with finalize(tree_solve=True))
 
-Writes benchmarks/results/brax_comparison_<platform>.json and prints a table with ratios to
-Brax positional. Needs the [brax] extra (brax, mujoco). The models are Brax's own humanoid.xml and
-ant.xml (copies in tests/assets), simulated at the XML's timestep by every engine, one physics
-step per call of each engine's step (dbdjax: 1 substep), the same random controls in the
-actuators' ctrlrange. MuJoCo's ctrl and ours are the same vector (a motor's torque = gear * ctrl).
+Updates benchmarks/results/brax_comparison_<platform>.json (what a run measures replaces the
+file's earlier numbers of those tasks, engines and batches; each number names its run; `--fresh`
+starts anew) and prints a table with ratios to Brax positional, starred where the two numbers
+come from different runs (`--plot FILE` prints it again). Needs the [brax] extra (brax, mujoco).
+The models are Brax's own humanoid.xml and ant.xml (copies in tests/assets), simulated at the
+XML's timestep by every engine, one physics step per call of each engine's step (dbdjax: 1
+substep), the same random controls in the actuators' ctrlrange. MuJoCo's ctrl and ours are the
+same vector (a motor's torque = gear * ctrl).
 """
 
 from __future__ import annotations
@@ -323,11 +326,14 @@ def main() -> None:
         nargs="+",
         choices=TASKS,
         default=list(TASKS),
-        help="which tasks to run; with a subset, the results file's other tasks are kept (merged per engine)",
+        help="which tasks to run; the results file's other tasks, engines and batches are kept (merged per engine)",
     )
     parser.add_argument("--batches", type=int, nargs="+", help="throughput's batch sizes (default: as --full or quick)")
     parser.add_argument("--note", default="", help="appended to the JSON's note (e.g. what else loaded the machine)")
-    parser.add_argument("--plot", type=Path, help="only redraw the plot of an existing results JSON")
+    parser.add_argument("--plot", type=Path, help="only print the table and redraw the plot of a results JSON")
+    parser.add_argument(
+        "--fresh", action="store_true", help="start the results file anew instead of updating its earlier runs"
+    )
     parser.add_argument(
         "--xla-defaults",
         action="store_true",
@@ -338,6 +344,8 @@ def main() -> None:
     if args.xla_defaults:
         COMPILER_OPTIONS = {}
     if args.plot:
+        for model_name, per_engine in json.loads(args.plot.read_text())["models"].items():
+            print_table(model_name, per_engine)
         plot(args.plot)
         return
     batches = args.batches or ([1, 16, 256, 4096] if args.full else [1, 16])
@@ -368,24 +376,27 @@ def main() -> None:
     # Every model's engines first, then the tasks in order of what matters most (throughput, the
     # dropped model's gaps, compile times, gradient cost), the JSON rewritten after each task so
     # that a run cut short keeps what it measured (`unfinished` lists the rest).
-    # A subset of the tasks updates the file's earlier results: those tasks' fields are replaced,
-    # the others kept, and each run's machine and load recorded under "runs".
-    earlier = json.loads(out.read_text()) if set(args.tasks) != set(TASKS) and out.exists() else None
+    # A run updates the file's earlier results: the fields of the tasks, engines and batches it
+    # measures are replaced, the others kept, each run's machine and load recorded under "runs" and
+    # each measurement tagged with its run (`--fresh` starts the file anew).
+    earlier = json.loads(out.read_text()) if out.exists() and not args.fresh else None
     this_run = {"tasks": args.tasks, "engines": args.engines, "batches": batches, "machine": results["machine"],
                 "compiler_options": COMPILER_OPTIONS}  # fmt: skip
-    if earlier is None and set(args.tasks) != set(TASKS):
+    if earlier is None:
         results["runs"] = [this_run]  # a later subset run appends to it
     if earlier is not None:
         first = {"tasks": list(TASKS), "machine": earlier["machine"], "note": earlier["note"]}
         results["runs"] = [*earlier.get("runs", [first]), this_run]
         results["models"] = earlier["models"]
         results["note"] = (
-            "The tasks were measured in separate runs (`runs`: each run's tasks, machine, load and note); "
-            "within a task every engine was measured in the same run, one after another: the ratios between "
-            "engines are what this file reports; absolute numbers depend on what else the machine ran."
+            "The results were measured in separate runs (`runs`: each run's tasks, engines, machine, load and "
+            "note; a measurement's `run` is its index there, none for those measured before session 60). Within "
+            "a run every engine was measured one after another: compare engines within one run (the printed "
+            "table stars a ratio across runs); absolute numbers depend on what else the machine ran."
         )
     if args.note:
         this_run["note"] = args.note
+    run = len(results["runs"]) - 1  # every measurement below carries it: the file mixes runs
     per_model: dict[str, tuple[list[Engine], dict[str, dict]]] = {}
     for model_name in args.models:
         engines, skipped = make_engines(ASSETS / f"{model_name}.xml", args.engines)
@@ -422,14 +433,15 @@ def main() -> None:
         task_started = time.perf_counter()
         try:
             if kind == "compile":
-                per_engine[engine.name]["compile"] = compile_times(engine)
+                per_engine[engine.name]["compile"] = {**compile_times(engine), "run": run}
             elif kind == "batch":
-                measured = per_engine[engine.name]["throughput"] + [throughput(engine, argument, seconds)]
+                measured = {**throughput(engine, argument, seconds), "run": run}
+                measured = [*per_engine[engine.name]["throughput"], measured]
                 per_engine[engine.name]["throughput"] = sorted(measured, key=lambda t: t["batch"])
             elif kind == "accuracy":
-                per_engine[engine.name]["dropped"] = dropped_accuracy(engine)
+                per_engine[engine.name]["dropped"] = {**dropped_accuracy(engine), "run": run}
             else:
-                per_engine[engine.name]["grad"].append(gradient_cost(engine, *argument))
+                per_engine[engine.name]["grad"].append({**gradient_cost(engine, *argument), "run": run})
         except Exception as error:  # noqa: BLE001 - one engine failing must not lose the others' numbers
             per_engine[engine.name].setdefault("errors", []).append(f"{kind} {argument}: {error!r:.300}")
         print(f"[{index + 1}/{len(tasks)}] {labels[index]}: {time.perf_counter() - task_started:.0f} s "
@@ -479,9 +491,21 @@ def plot(path: Path) -> None:
 
 
 def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
-    """Steps/s per batch and compile times, each with its ratio to Brax positional."""
+    """Steps/s per batch and compile times, each with its ratio to Brax positional; a ratio of two
+    numbers that different runs measured (their "run", an index into the JSON's `runs`; none
+    recorded before session 60) is starred."""
     reference = per_engine.get("brax-positional", {})
-    reference_rate = {t["batch"]: t["steps_per_s"] for t in reference.get("throughput", [])}
+    reference_rate = {t["batch"]: t for t in reference.get("throughput", [])}
+    mixed = False
+
+    def ratio(ours: dict, theirs: dict, key: str) -> str:
+        nonlocal mixed
+        if not ours.get(key) or not theirs.get(key):
+            return "-"
+        star = ours.get("run") is None or ours.get("run") != theirs.get("run")
+        mixed |= star
+        return f"{ours[key] / theirs[key]:.2f}" + ("*" if star else "")
+
     print(f"\n{model_name}")
     header = f"{'engine':<18}{'batch':>6}{'steps/s':>12}{'x brax-pos':>11}{'compile grad100 s':>19}{'x brax-pos':>11}"
     print(header)
@@ -491,14 +515,14 @@ def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
             for engine, reason in data.items():
                 print(f"{engine:<18}skipped: {reason:.200}")
             continue
-        grad_compile = data.get("compile", {}).get("grad_rollout100_s")
-        reference_compile = reference.get("compile", {}).get("grad_rollout100_s")
+        compiled = data.get("compile", {})
+        grad_compile = compiled.get("grad_rollout100_s")
+        compile_ratio = ratio(compiled, reference.get("compile", {}), "grad_rollout100_s")
         for t in data["throughput"]:
-            rate_ratio = t["steps_per_s"] / reference_rate[t["batch"]] if t["batch"] in reference_rate else None
-            compile_ratio = grad_compile / reference_compile if grad_compile and reference_compile else None
+            rate_ratio = ratio(t, reference_rate.get(t["batch"], {}), "steps_per_s")
             print(
-                f"{name:<18}{t['batch']:>6}{t['steps_per_s']:>12.0f}{_ratio(rate_ratio):>11}"
-                f"{grad_compile if grad_compile is not None else '-':>19}{_ratio(compile_ratio):>11}"
+                f"{name:<18}{t['batch']:>6}{t['steps_per_s']:>12.0f}{rate_ratio:>11}"
+                f"{grad_compile if grad_compile is not None else '-':>19}{compile_ratio:>11}"
             )
         if "dropped" in data:
             d = data["dropped"]
@@ -507,10 +531,9 @@ def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
                   f"energy gain {d['max_energy_gain_J']:.2f} J")  # fmt: skip
         for error in data.get("errors", []):
             print(f"{'':<18}error: {error}")
-
-
-def _ratio(value: float | None) -> str:
-    return "-" if value is None else f"{value:.2f}"
+    if mixed:
+        print("* of numbers from different runs (the JSON's `runs`), or from a run that was not recorded: "
+              "the machine's load may differ between them")  # fmt: skip
 
 
 if __name__ == "__main__":
