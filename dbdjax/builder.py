@@ -1100,6 +1100,7 @@ class ModelBuilder:
         initial_guess: str = "zero",
         baumgarte: float = 0.05,
         tree_solve: bool = False,
+        point_sweeps: int = 0,
     ) -> Model:
         """Freeze the description into a `Model` for `init`, `step` and `rollout`.
 
@@ -1143,6 +1144,11 @@ class ModelBuilder:
           limit or driven is solved with its point (Brax's dropped ant lands at 1 iteration as at 32
           sweeps alone; a driven arm settles at its static sag within 1.1e-6 rad). DBD solver only; off by
           default.
+        point_sweeps: sweeps of the joints' points alone after the `iterations` whole-joint sweeps
+          (`solvers.dbd.sweep_joint_points`), which close what the other rows of a joint left open
+          at its neighbours' points. Brax's ant at 1 substep x 4 iterations, dropped: largest joint
+          gap 19.6 -> 3.8 mm with 2 point sweeps (README, "Point sweeps"). DBD solver only; 0 (none)
+          by default.
         """
         dt = _scalar(dt, "finalize: dt")
         if dt <= 0.0:
@@ -1151,6 +1157,8 @@ class ModelBuilder:
                             ("restitution_iterations", restitution_iterations)):  # fmt: skip
             if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
                 raise ValueError(f"finalize: {what} must be a positive integer, got {count!r}")
+        if not isinstance(point_sweeps, (int, np.integer)) or isinstance(point_sweeps, bool) or point_sweeps < 0:
+            raise ValueError(f"finalize: point_sweeps must be a non-negative integer, got {point_sweeps!r}")
         if solver not in SOLVERS:
             raise ValueError(f"finalize: unknown solver {solver!r}; choose one of {SOLVERS}")
         if initial_guess not in INITIAL_GUESSES:
@@ -1161,6 +1169,9 @@ class ModelBuilder:
                 raise ValueError(
                     "finalize: tree_solve is a step of the DBD solver's iterations; solver='impulse' has none"
                 )
+            if point_sweeps:
+                raise ValueError("finalize: point_sweeps are the DBD solver's; solver='impulse' sweeps its joints' "
+                                 "points after its rotor pass already")  # fmt: skip
         baumgarte = self._baumgarte("finalize: baumgarte", baumgarte)
         if not self._bodies:
             raise ValueError("finalize: the model has no bodies")
@@ -1178,7 +1189,7 @@ class ModelBuilder:
             checkpoint=bool(checkpoint), contact_margin=contact_margin, contact_compliance=contact_compliance,
             depenetration_speed=depenetration_speed,
             restitution_iterations=int(restitution_iterations), initial_guess=initial_guess, baumgarte=baumgarte,
-            tree_solve=bool(tree_solve),
+            tree_solve=bool(tree_solve), point_sweeps=int(point_sweeps),
         )  # fmt: skip
         return self._model(options)
 

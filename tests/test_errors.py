@@ -74,6 +74,12 @@ def builder_with_two_bodies():
         (lambda b: b.finalize(iterations=0), r"finalize: iterations must be a positive integer"),
         (lambda b: b.finalize(substeps=1.5), r"finalize: substeps must be a positive integer"),
         (lambda b: b.finalize(solver="magic"), r"finalize: unknown solver 'magic'"),
+        (lambda b: b.finalize(point_sweeps=-1), r"finalize: point_sweeps must be a non-negative integer, got -1"),
+        (lambda b: b.finalize(point_sweeps=True), r"finalize: point_sweeps must be a non-negative integer"),
+        (
+            lambda b: b.finalize(solver="impulse", point_sweeps=2),
+            r"finalize: point_sweeps are the DBD solver's; solver='impulse' sweeps its joints' points",
+        ),
         (
             lambda b: (b.add_ik_target(1, (0, 0, 0)), b.finalize(solver="impulse")),
             r"finalize: IK target 0 \(on body 1\): the impulse solver has no IK target constraint",

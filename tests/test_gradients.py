@@ -24,8 +24,9 @@ def tip_height_after(model, start, steps=20):
     return final.pos[-1, 2] + 0.3 * final.pos[-1, 0]
 
 
-def test_gradient_wrt_initial_velocity_matches_finite_differences(float64):
-    model = swinging_chain()
+@pytest.mark.parametrize("point_sweeps", [0, 2])
+def test_gradient_wrt_initial_velocity_matches_finite_differences(float64, point_sweeps):
+    model = swinging_chain(point_sweeps=point_sweeps)
     start = dbd.init(model)
     assert start.pos.dtype == jnp.float64
 

@@ -971,8 +971,16 @@ def project(
     # the joint holds (derivatives there disagree with finite differences), and its one row along
     # the gap leaves what lies across it. The block conserves linear momentum exactly and angular
     # momentum up to gap x impulse (63), which vanishes as the gap closes.
-    # A slider only removes the part across its axis (SI (51)), a planar joint only the part along
-    # its normal; both act level with p_b on a.
+    pair, point = _point_step(joint, flag, pair, jnp.stack(lam[POINT : POINT + 3]) + hold.impulse, rows)
+    lam[POINT : POINT + 3] = list(point)
+    dx, dtheta = pair.displacements()
+    return dx, dtheta, _restacked(multipliers, lam, untouched)
+
+
+def _point_step(joint: Joints, flag: JointFlags, pair: BodyPair, multiplier: jnp.ndarray, rows: frozenset[str]):
+    """The joint's point block, DBD (64)-(66), projected once from `pair`: (moved pair, multiplier (3,)).
+    A slider only removes the part across its axis (SI (51)), a planar joint only the part along
+    its normal; both act level with p_b on a."""
     quat_a, quat_b = pair.current_quats()
     delta, arm_a, arm_b = joint_points(joint, flag, pair, quat_a, quat_b)
     constrained = None
@@ -982,12 +990,17 @@ def project(
         eye = jnp.eye(3, dtype=delta.dtype)
         constrained = jnp.where(flag.slider, eye - along_axis, jnp.where(flag.planar, along_axis, eye))
         arm_a = arm_a - math.matvec(eye - constrained, delta)
-    pair, point = row.point_block(
-        pair, arm_a, arm_b, delta, jnp.stack(lam[POINT : POINT + 3]) + hold.impulse, hard(True), constrained=constrained
-    )
-    lam[POINT : POINT + 3] = list(point)
+    rule = row.rigid(joint.relaxation, joint.regularization, True)
+    return row.point_block(pair, arm_a, arm_b, delta, multiplier, rule, constrained=constrained)
+
+
+def project_point(joint: Joints, flag: JointFlags, bodies: BodySet, multipliers: jnp.ndarray, rows: frozenset[str]):
+    """The joint's point block alone (`project`'s last row), for the point sweeps after the DBD
+    sweeps (`solvers.dbd.sweep_joint_points`). multipliers: (NUM_MULTIPLIERS,), the point's
+    continued. Returns (dx (2, 3), dtheta (2, 3), multipliers)."""
+    pair, point = _point_step(joint, flag, BodyPair.of(bodies), multipliers[POINT : POINT + 3], rows)
     dx, dtheta = pair.displacements()
-    return dx, dtheta, _restacked(multipliers, lam, untouched)
+    return dx, dtheta, multipliers.at[POINT : POINT + 3].set(point)
 
 
 def limit_errors(value, lower, upper, periodic=False):
