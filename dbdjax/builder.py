@@ -1150,7 +1150,8 @@ class ModelBuilder:
           gap 19.6 -> 3.8 mm with 2 point sweeps (README, "Point sweeps"). Contacts, limits and
           drives are not in the point sweeps, which can undo them: with 2, the driven ragdoll of
           `examples/ragdoll_demo.py` fell (pelvis 0.13 m) and its 10,000 random-action steps went
-          64 mm into the floor (20 mm without). DBD solver only; 0 (none) by default.
+          64 mm into the floor (its test allows 20 mm, and passes without). DBD solver only; 0 (none) by
+          default.
         """
         dt = _scalar(dt, "finalize: dt")
         if dt <= 0.0:
