@@ -83,15 +83,21 @@ def test_ant_keeps_its_joints_together_under_random_control():
     assert float(jnp.max(diagnostics.joint_gaps(model, trajectory))) < 0.05
 
 
+def _ant_holding_its_build_pose(lift: float = 0.0) -> str:
+    """ant.xml with its ankles' ranges widened to hold the build pose (in ant.xml the ankles start
+    30 degrees outside their range), the torso `lift` m higher."""
+    xml = (ASSETS / "ant.xml").read_text().replace('range="30 70"', 'range="-70 70"')
+    xml = xml.replace('range="-70 -30"', 'range="-70 70"')
+    return xml.replace('name="torso" pos="0 0 0.75"', f'name="torso" pos="0 0 {0.75 + lift}"')
+
+
 def _dropped_ant(**finalize):
     """Brax's ant (armature 1 on every hinge: 40x the hips' own joint-space inertia, 120x the ankles')
     with its ankles' ranges widened to hold the build pose (in ant.xml the ankles start 30 degrees
     outside their range, and correcting that in one substep is a kick of its own), dropped from the
     build pose with zero control for 100 steps: (model, start, trajectory, energy (100,), its
     rotors' share (100,))."""
-    xml = (ASSETS / "ant.xml").read_text().replace('range="30 70"', 'range="-70 70"')
-    xml = xml.replace('range="-70 -30"', 'range="-70 70"')
-    model = dbd.load_mjcf(xml, **finalize)
+    model = dbd.load_mjcf(_ant_holding_its_build_pose(), **finalize)
     start = dbd.init(model)
     _, trajectory = jax.jit(dbd.rollout)(model, start, jnp.zeros((100, model.num_controls)))
     energy = np.asarray(diagnostics.energy(model, trajectory))
@@ -105,11 +111,9 @@ def test_point_sweeps_close_the_joints_the_whole_joint_sweeps_leave_open():
     # the light leg it shares with its neighbour (gear 150 on 40-70 g legs, armature 1), and the
     # four whole-joint sweeps left the ankles open by 5.7-9.8 mm over seeds 0-7; with 2 sweeps of
     # the points alone after them 0.67-1.25 mm, with 1 1.8-3.1 mm (measured; seed 0: 7.48, 0.87).
-    xml = (ASSETS / "ant.xml").read_text().replace('name="torso" pos="0 0 0.75"', 'name="torso" pos="0 0 5.75"')
-    xml = xml.replace('range="30 70"', 'range="-70 70"').replace('range="-70 -30"', 'range="-70 70"')
     gaps = {}
     for point_sweeps in (0, 2):
-        model = dbd.load_mjcf(xml, iterations=4, point_sweeps=point_sweeps)
+        model = dbd.load_mjcf(_ant_holding_its_build_pose(lift=5.0), iterations=4, point_sweeps=point_sweeps)
         low, high = model.control_range[:, 0], model.control_range[:, 1]
         controls = jax.random.uniform(jax.random.PRNGKey(0), (10, model.num_controls), minval=low, maxval=high)
         _, trajectory = jax.jit(dbd.rollout)(model, dbd.init(model), controls)

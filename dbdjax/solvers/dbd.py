@@ -321,8 +321,8 @@ def solve(
             dx, dtheta, multipliers = gauss_seidel(structure.colours, all_families, table, options.iterations,
                                                     multipliers, tree_step)  # fmt: skip
         if options.point_sweeps and len(all_families[0].bodies):
-            dx, dtheta, multipliers[0] = sweep_joint_points(model, predicted, table._replace(dx=dx, dtheta=dtheta),
-                                                            multipliers[0])  # fmt: skip
+            swept = table._replace(dx=dx, dtheta=dtheta)
+            dx, dtheta, multipliers[0] = sweep_joint_points(model, predicted, all_families[0], swept, multipliers[0])
         if angular is not None:
             # Then one solve of the whole of every tree joint: its point, rotation lock, rotors, the
             # soft angle limits past their bounds and its drive (`tree.angular_rows`). Once, at the end: inside the
@@ -383,7 +383,7 @@ def rotor_kinds(model: Model) -> list[tuple[np.ndarray, frozenset[str]]]:
     return [(positions, rows) for positions, rows in kinds if positions.size]
 
 
-def sweep_joint_points(model: Model, predicted: State, table: BodySet, multipliers: jnp.ndarray):
+def sweep_joint_points(model: Model, predicted: State, joint_family: Family, table: BodySet, multipliers: jnp.ndarray):
     """`Options.point_sweeps` Gauss-Seidel sweeps of the joints' point blocks alone
     (`joints.project_point`) after the whole-joint sweeps, over the joints' own colouring: each
     whole joint's rows move bodies that its neighbours share (an ant's light leg between a hip
@@ -391,14 +391,19 @@ def sweep_joint_points(model: Model, predicted: State, table: BodySet, multiplie
     open at a fraction of a whole-joint sweep's cost. Each body b carries its joints' rotors
     (`with_rotors`, on body b: a rotor turns with the child it drives), so that a point closes by
     moving the light bodies rather than by spinning their rotors, as in the impulse solver's
-    point sweeps (`solvers.impulse.rotor_pass`). table: the bodies after the sweeps (dx, dtheta
+    point sweeps (`solvers.impulse.rotor_pass`). joint_family: the solve's joints family (its
+    parameters, joints and targets, and flags). table: the bodies after the sweeps (dx, dtheta
     their displacements (N + 1, 3)). multipliers: the joints' (J, NUM_MULTIPLIERS). Returns
     (dx, dtheta, multipliers), the points' continued."""
     structure = model.structure
     rows = joints.rows_in_use(structure)
-    family = Family("joint points", structure.family_bodies()[0], model.joints, joints.flags(structure),
-                    lambda joint, flag, bodies, lam: joints.project_point(joint, flag, bodies, lam, rows),
-                    joints.NUM_MULTIPLIERS)  # fmt: skip
+    # One projection for every kind (no variants): a point block is the same rows in every joint.
+    family = joint_family._replace(
+        name="joint points",
+        params=joint_family.params[0],
+        variants=(),
+        project=lambda joint, flag, bodies, lam: joints.project_point(joint, flag, bodies, lam, rows),
+    )
     colours = colouring.colour_groups([family.bodies], structure.num_bodies)
     heavy = with_rotors(model, predicted, table, on_body_a=False)
     dx, dtheta, (multipliers,) = gauss_seidel(colours, [family], heavy, model.options.point_sweeps, [multipliers])
