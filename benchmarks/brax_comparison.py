@@ -1,8 +1,9 @@
 """dbdjax side by side with Brax (positional, generalized, mjx pipelines) on the same MJCF model,
 dt and control, in one run: physics steps/s at several batch sizes, compile times (step, a
 100-step rollout, grad of that rollout), the accuracy of a dropped humanoid (largest joint gap,
-spurious energy gain), and the cost of differentiable rollouts (time and peak memory of grad
-through 100 / 1000 steps, with and without rematerialisation).
+spurious energy gain), where the dropped model comes to rest beside MuJoCo's own rest (`rest`),
+and the cost of differentiable rollouts (time and peak memory of grad through 100 / 1000 steps,
+with and without rematerialisation).
 
     python benchmarks/brax_comparison.py            # quick: batches 1 16, short timings
     python benchmarks/brax_comparison.py --full     # batches 1 16 256 4096, longer timings
@@ -62,6 +63,7 @@ class Engine:
     joint_gap: Callable[[Any], jnp.ndarray]  # state -> largest joint gap (m)
     energy: Callable[[Any], jnp.ndarray]  # state -> kinetic + potential energy (J)
     height: Callable[[Any], jnp.ndarray]  # state -> summed body heights (a differentiable scalar)
+    root_height: Callable[[Any], jnp.ndarray]  # state -> height of the root body's centre of mass (m)
     step_remat: Callable[[Any, jnp.ndarray], Any] | None = None  # step rematerialised for reverse mode
     vmap: Callable = jax.vmap  # how a batch of steps is mapped (dbdjax-dbd-trailing: dbd.vmap)
 
@@ -104,6 +106,7 @@ def dbdjax_engine(xml: Path, solver: str, substeps: int = 1) -> Engine:
         joint_gap=lambda state: jnp.max(dbd.diagnostics.joint_gaps(model, state)),
         energy=lambda state: dbd.diagnostics.energy(model, state),
         height=lambda state: jnp.sum(state.pos[:, 2]),
+        root_height=lambda state: state.pos[0, 2],
         vmap=dbd.vmap if solver == "dbd-trailing" else jax.vmap,
     )
 
@@ -158,6 +161,7 @@ def brax_engine(xml: Path, backend: str) -> Engine:
         joint_gap=joint_gap,
         energy=energy,
         height=lambda state: jnp.sum(centres(state)[0][:, 2]),
+        root_height=lambda state: centres(state)[0][0, 2],
     )
 
 
@@ -284,6 +288,54 @@ def dropped_accuracy(engine: Engine, seconds: float = 1.0) -> dict:
     }
 
 
+def resting(engine: Engine, seconds: float = 10.0) -> dict:
+    """Zero control from the initial pose for `seconds`: the height of the root body's centre of mass
+    at the end (where the dropped model came to rest), its range over the last second (still
+    moving?) and the largest rise of mechanical energy over the second half above its level at
+    the half (a model at rest that gains energy blew up)."""
+    steps = int(round(seconds / engine.dt))
+    last_second = int(round(1.0 / engine.dt))
+
+    def one(s, _):
+        s = engine.step(s, jnp.zeros(engine.num_controls))
+        return s, (engine.root_height(s), engine.energy(s))
+
+    final, (heights, energies) = jit(lambda s: jax.lax.scan(one, s, None, length=steps))(engine.init())
+    heights, energies = np.asarray(heights), np.asarray(energies)
+    return {
+        "seconds": seconds,
+        "root_height_m": round(float(heights[-1]), 4),
+        "root_height_last_second_m": [
+            round(float(heights[-last_second:].min()), 4),
+            round(float(heights[-last_second:].max()), 4),
+        ],  # fmt: skip
+        "energy_rise_second_half_J": round(float(energies[steps // 2 :].max() - energies[steps // 2 - 1]), 3),
+        "finite": bool(np.all(np.isfinite(np.asarray(jax.tree.leaves(final)[0])))),
+    }
+
+
+def mujoco_rest(xml: Path, longest: float = 120.0) -> dict:
+    """MuJoCo's own answer to `resting`: mj_step with zero control until the root body's centre of mass
+    moves less than 0.1 mm over 5 s (Brax's ant creeps down on its joint damping for 40 s before its
+    ankles reach their limits), at most `longest` s."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_path(str(xml))
+    data = mujoco.MjData(model)
+    window = int(round(5.0 / model.opt.timestep))
+    heights = []
+    while len(heights) * model.opt.timestep < longest:
+        mujoco.mj_step(model, data)
+        heights.append(float(data.xipos[1, 2]))
+        if len(heights) > window and abs(heights[-1] - heights[-1 - window]) < 1e-4:
+            break
+    return {
+        "root_height_m": round(heights[-1], 4),
+        "settled_after_s": round(len(heights) * model.opt.timestep, 2),
+        "root_height_after_10_s_m": round(heights[min(len(heights), int(round(10.0 / model.opt.timestep))) - 1], 4),
+    }
+
+
 def gradient_cost(engine: Engine, horizon: int, remat: bool) -> dict:
     """Time of one grad of the final height w.r.t. the controls through `horizon` steps, and the
     compiled program's temporary memory (XLA's memory analysis: deterministic, unlike RSS)."""
@@ -311,7 +363,7 @@ def gradient_cost(engine: Engine, horizon: int, remat: bool) -> dict:
 
 # ------------------------------------------------------------------------------------------- main
 
-TASKS = ("throughput", "accuracy", "compile", "grad")
+TASKS = ("throughput", "accuracy", "rest", "compile", "grad")
 
 
 def main() -> None:
@@ -346,8 +398,9 @@ def main() -> None:
     if args.xla_defaults:
         COMPILER_OPTIONS = {}
     if args.plot:
-        for model_name, per_engine in json.loads(args.plot.read_text())["models"].items():
-            print_table(model_name, per_engine)
+        shown = json.loads(args.plot.read_text())
+        for model_name, per_engine in shown["models"].items():
+            print_table(model_name, per_engine, shown.get("mujoco_rest", {}).get(model_name))
         plot(args.plot)
         return
     batches = args.batches or ([1, 16, 256, 4096] if args.full else [1, 16])
@@ -390,6 +443,8 @@ def main() -> None:
         first = {"tasks": list(TASKS), "machine": earlier["machine"], "note": earlier["note"]}
         results["runs"] = [*earlier.get("runs", [first]), this_run]
         results["models"] = earlier["models"]
+        if "mujoco_rest" in earlier:
+            results["mujoco_rest"] = earlier["mujoco_rest"]
         results["note"] = (
             "The results were measured in separate runs (`runs`: each run's tasks, engines, machine, load and "
             "note; a measurement's `run` is its index there, none for those measured before session 60). Within "
@@ -414,6 +469,9 @@ def main() -> None:
             if errors:
                 fields["errors"] = errors
         per_engine.pop("skipped", None)
+        if "rest" in args.tasks:
+            reference = {**mujoco_rest(ASSETS / f"{model_name}.xml"), "run": run}
+            results.setdefault("mujoco_rest", {})[model_name] = reference
         if skipped:
             per_engine["skipped"] = skipped
         per_model[model_name] = (engines, per_engine)
@@ -422,6 +480,8 @@ def main() -> None:
         tasks += [(m, e, "batch", b) for b in batches for m, (es, _) in per_model.items() for e in es]
     if "accuracy" in args.tasks:
         tasks += [(m, e, "accuracy", None) for m, (es, _) in per_model.items() for e in es]
+    if "rest" in args.tasks:
+        tasks += [(m, e, "rest", None) for m, (es, _) in per_model.items() for e in es]
     if "compile" in args.tasks:
         tasks += [(m, e, "compile", None) for m, (es, _) in per_model.items() for e in es]
     if "grad" in args.tasks:
@@ -442,6 +502,8 @@ def main() -> None:
                 per_engine[engine.name]["throughput"] = sorted(measured, key=lambda t: t["batch"])
             elif kind == "accuracy":
                 per_engine[engine.name]["dropped"] = {**dropped_accuracy(engine), "run": run}
+            elif kind == "rest":
+                per_engine[engine.name]["rest"] = {**resting(engine), "run": run}
             else:
                 per_engine[engine.name]["grad"].append({**gradient_cost(engine, *argument), "run": run})
         except Exception as error:  # noqa: BLE001 - one engine failing must not lose the others' numbers
@@ -454,7 +516,7 @@ def main() -> None:
         out.write_text(json.dumps(results, indent=2) + "\n")
 
     for model_name, (_, per_engine) in per_model.items():
-        print_table(model_name, per_engine)
+        print_table(model_name, per_engine, results.get("mujoco_rest", {}).get(model_name))
     print(f"wrote {out}")
     plot(out)
 
@@ -492,10 +554,11 @@ def plot(path: Path) -> None:
     print(f"wrote {out}")
 
 
-def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
+def print_table(model_name: str, per_engine: dict[str, dict], mujoco: dict | None = None) -> None:
     """Steps/s per batch and compile times, each with its ratio to Brax positional; a ratio of two
     numbers that different runs measured (their "run", an index into the JSON's `runs`; none
-    recorded before session 60) is starred."""
+    recorded before session 60) is starred. mujoco: MuJoCo's own rest (`mujoco_rest`), beside each
+    engine's."""
     reference = per_engine.get("brax-positional", {})
     reference_rate = {t["batch"]: t for t in reference.get("throughput", [])}
     mixed = False
@@ -531,6 +594,16 @@ def print_table(model_name: str, per_engine: dict[str, dict]) -> None:
             label = "" if data["throughput"] else name  # an engine measured on this task alone
             print(f"{label:<18}dropped 1 s: max joint gap {d['max_joint_gap_m']:.2e} m, "
                   f"energy gain {d['max_energy_gain_J']:.2f} J")  # fmt: skip
+        if "rest" in data:
+            r = data["rest"]
+            label = "" if data["throughput"] or "dropped" in data else name
+            versus = (
+                ""
+                if mujoco is None
+                else (f" (MuJoCo's, settled after {mujoco['settled_after_s']:.0f} s: {mujoco['root_height_m']:.3f} m)")
+            )
+            print(f"{label:<18}at rest after {r['seconds']:.0f} s: root at {r['root_height_m']:.3f} m{versus}, "
+                  f"energy rise in the second half {r['energy_rise_second_half_J']:.2f} J")  # fmt: skip
         for error in data.get("errors", []):
             print(f"{'':<18}error: {error}")
     if mixed:

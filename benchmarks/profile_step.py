@@ -23,7 +23,8 @@ average and its CPU-time ratio (before / after), so that a ratio can be told fro
 child processes, then time N rollout calls each, one after the other in alternating order, so
 that each pair of calls meets the same load; recorded: every pair's CPU times, the median of the
 pairs' ratios and the ratio of the two minima. On a loaded machine this is the steadiest ratio.
-The settings are brax_comparison.py's (--solver: dbdjax's solver, dbd by default): 1 substep, 4
+The settings are brax_comparison.py's (--solver: dbdjax's solver, dbd by default; dbd-tree: DBD with
+tree_solve): 1 substep, 4
 iterations, float32, uniform random controls in the actuators' ctrlrange, the XML's dt. Times: the
 best of `--repeats` timed calls (wall and this process's CPU time; on a shared machine CPU time is
 the steadier of the two).
@@ -88,13 +89,14 @@ def hlo_counts(compiled) -> dict:
 
 
 def engine(name: str, kind: str, solver: str = "dbd"):
-    """(init state, step(state, control), control range, dt) of dbdjax (its `solver`: dbd or impulse)
-    or brax-positional on a model."""
+    """(init state, step(state, control), control range, dt) of dbdjax (its `solver`: dbd, impulse,
+    or dbd-tree: DBD with `finalize(tree_solve=True)`) or brax-positional on a model."""
     xml = ASSETS / f"{name}.xml"
     if kind == "dbdjax":
         import dbdjax as dbd
 
-        model = dbd.load_mjcf(xml, substeps=1, iterations=4, solver=solver)
+        options = {"solver": "dbd", "tree_solve": True} if solver == "dbd-tree" else {"solver": solver}
+        model = dbd.load_mjcf(xml, substeps=1, iterations=4, **options)
         return dbd.init(model), lambda s, c: dbd.step(model, s, c), np.asarray(model.control_range), model
     from brax.io import mjcf
     from brax.positional import pipeline
@@ -280,7 +282,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1, help="before/after child pairs per model (0: --paired only)")
     parser.add_argument("--out", help="write the results here (JSON)")
     parser.add_argument("--note", default="")
-    parser.add_argument("--solver", default="dbd", choices=["dbd", "impulse"], help="dbdjax's solver (load_mjcf)")
+    parser.add_argument(
+        "--solver", default="dbd", choices=["dbd", "impulse", "dbd-tree"], help="dbdjax's solver (dbd-tree: tree_solve)"
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--model", help=argparse.SUPPRESS)
     parser.add_argument("--kind", help=argparse.SUPPRESS)

@@ -160,29 +160,6 @@ def _transpose(a: jnp.ndarray) -> jnp.ndarray:
     return jnp.swapaxes(a, -1, -2)
 
 
-def _inverse(matrix: jnp.ndarray) -> jnp.ndarray:
-    """Inverse of (..., 3m, 3m) matrices by 3x3 blocks: the top-left (3m - 3) block inverted the
-    same way, then the Schur complement of it.
-
-    The matrices here are positive definite: a body's M~ plus what its children add (the
-    translational block m 1 plus a positive semi-definite term), or a joint's rows' effective
-    inverse mass plus their compliance, its point rows first (their block K + alpha is invertible).
-    """
-    n = matrix.shape[-1]
-    if n == 3:
-        return math.inverse3(matrix)
-    a, b = matrix[..., :-3, :-3], matrix[..., :-3, -3:]
-    c, d = matrix[..., -3:, :-3], matrix[..., -3:, -3:]
-    a_inv = _inverse(a)
-    a_inv_b, c_a_inv = math.matmul(a_inv, b), math.matmul(c, a_inv)
-    s_inv = math.inverse3(d - math.matmul(c, a_inv_b))
-    top_right = -math.matmul(a_inv_b, s_inv)
-    top_left = a_inv - math.matmul(top_right, c_a_inv)
-    bottom_left = -math.matmul(s_inv, c_a_inv)
-    top = jnp.concatenate([top_left, top_right], axis=-1)
-    return jnp.concatenate([top, jnp.concatenate([bottom_left, s_inv], axis=-1)], axis=-2)
-
-
 def _point_jacobian(sign: np.ndarray, arm: jnp.ndarray) -> jnp.ndarray:
     """d(delta p)/d(dx, dtheta) of one side of a joint, (..., 3, 6) = sign (1, -[arm]x): DBD (65)."""
     eye = jnp.broadcast_to(jnp.eye(3, dtype=arm.dtype), arm.shape[:-1] + (3, 3))
@@ -535,8 +512,11 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
     def eliminate(carry, level):
         index, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
         jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12]
-        d_inv = _inverse(carry[index[:, 0]])
-        s_inv = _inverse(alpha[:, :, None] * eye + math.matmul(math.matmul(jc, d_inv), _transpose(jc)))
+        # Both positive definite up to a skew part (a velocity-dependent inertia, a sliding contact's
+        # tilted row): a body's M~ plus what its children add, a joint's rows' effective inverse
+        # mass plus their compliance.
+        d_inv = math.gauss_jordan_inverse(carry[index[:, 0]])
+        s_inv = math.gauss_jordan_inverse(alpha[:, :, None] * eye + math.matmul(math.matmul(jc, d_inv), _transpose(jc)))
         carry = carry.at[index[:, 1]].add(math.matmul(math.matmul(_transpose(jp), s_inv), jp))
         return carry, jnp.concatenate([padded(d_inv), padded(s_inv)], axis=-1)  # (W, max(6, R), 6 + R)
 
