@@ -495,7 +495,7 @@ def gauss_jordan_inverse(matrix: jnp.ndarray) -> jnp.ndarray:
     translation, the inverse came out off by 2,900 times its largest entry, and the tree's direct
     solve spun the leg 0.47 rad (this one: off by 5e-6, `tests/test_math.py`). An L U inverse
     written out entry by entry was as accurate and made the tree's step 1.6x slower on CPU; this
-    one, 1.06-1.19x.
+    one, 1.02-1.19x (`benchmarks/results/profile_step_paired_session61_tree_inverse.json`).
     """
     n = matrix.shape[-1]
     augmented = jnp.concatenate([matrix, jnp.broadcast_to(jnp.eye(n, dtype=matrix.dtype), matrix.shape)], axis=-1)

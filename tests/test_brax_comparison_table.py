@@ -56,3 +56,34 @@ def test_a_table_of_one_run_has_no_footnote(capsys):
     brax_comparison.print_table("ant", per_engine)
     out = capsys.readouterr().out
     assert "*" not in out
+
+
+def test_an_engine_measured_at_rest_alone_prints_its_rest_beside_mujocos(capsys):
+    per_engine = {
+        "dbdjax-dbd-tree": {
+            "throughput": [],
+            "rest": {"seconds": 10.0, "root_height_m": 0.3619, "energy_rise_second_half_J": 0.0, "run": 2},
+        }
+    }
+    mujoco = {"root_height_m": 0.3618, "settled_after_s": 36.3, "root_height_after_10_s_m": 0.5737, "run": 2}
+    brax_comparison.print_table("ant", per_engine, mujoco)
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("dbdjax-dbd-tree"))
+    assert "at rest after 10 s: root at 0.362 m (MuJoCo's, settled after 36 s: 0.362 m)" in line
+    assert "energy rise in the second half 0.00 J" in line
+
+
+def test_mujocos_ant_settles_on_its_ankle_limits():
+    """The reference the rest task compares with: Brax's ant.xml under zero control creeps down on
+    its joint damping (its first step's limit correction swings the ankles to 1.24 rad, past their
+    upper bound) and settles after about 36 s with its ankles on their lower bounds (0.524 rad)."""
+    rest = brax_comparison.mujoco_rest(brax_comparison.ASSETS / "ant.xml")
+    assert abs(rest["root_height_m"] - 0.362) < 0.002
+    assert rest["root_height_after_10_s_m"] > 0.55  # still creeping at 10 s
+    assert 30 < rest["settled_after_s"] < 45
+
+
+def test_a_mujoco_rest_that_never_settled_says_so(capsys):
+    per_engine = {"dbdjax-dbd": {"throughput": [], "rest": {"seconds": 10.0, "root_height_m": -1.108,
+                                                            "energy_rise_second_half_J": -0.01, "run": 2}}}  # fmt: skip
+    brax_comparison.print_table("humanoid", per_engine, {"root_height_m": -1.1769, "settled_after_s": None, "run": 2})
+    assert "(MuJoCo's had not settled after 120 s: -1.177 m)" in capsys.readouterr().out
