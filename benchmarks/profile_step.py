@@ -23,11 +23,10 @@ average and its CPU-time ratio (before / after), so that a ratio can be told fro
 child processes, then time N rollout calls each, one after the other in alternating order, so
 that each pair of calls meets the same load; recorded: every pair's CPU times, the median of the
 pairs' ratios and the ratio of the two minima. On a loaded machine this is the steadiest ratio.
-The settings are brax_comparison.py's (--solver: dbdjax's solver, dbd by default; dbd-tree: DBD with
-tree_solve): 1 substep, 4
-iterations, float32, uniform random controls in the actuators' ctrlrange, the XML's dt. Times: the
-best of `--repeats` timed calls (wall and this process's CPU time; on a shared machine CPU time is
-the steadier of the two).
+The settings are brax_comparison.py's (--solver: dbdjax's solver, dbd by default; dbd-tree: DBD
+with tree_solve): 1 substep, 4 iterations, float32, uniform random controls in the actuators'
+ctrlrange, the XML's dt. Times: the best of `--repeats` timed calls (wall and this process's CPU
+time; on a shared machine CPU time is the steadier of the two).
 """
 
 from __future__ import annotations
