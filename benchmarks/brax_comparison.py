@@ -266,25 +266,32 @@ def compile_times(engine: Engine, horizon: int = 100) -> dict:
     return result
 
 
+def coast(engine: Engine, seconds: float, measure: Callable[[Any], Any]) -> tuple[Any, Any, bool]:
+    """Zero control from the initial pose for `seconds`: (the initial state, `measure` of the state
+    after each step, stacked, whether the final state is finite)."""
+    start = engine.init()
+
+    def one(s, _):
+        s = engine.step(s, jnp.zeros(engine.num_controls))
+        return s, measure(s)
+
+    steps = int(round(seconds / engine.dt))
+    final, measured = jit(lambda s: jax.lax.scan(one, s, None, length=steps))(start)
+    return start, measured, bool(np.all(np.isfinite(np.asarray(jax.tree.leaves(final)[0]))))
+
+
 def dropped_accuracy(engine: Engine, seconds: float = 1.0) -> dict:
     """Zero control from the initial pose for `seconds`: the largest joint gap over the run and
     the largest rise of mechanical energy above its start (contacts and damping only remove
     energy, so any rise is the integrator's or solver's)."""
-    steps = int(round(seconds / engine.dt))
-    state = engine.init()
-
-    def one(s, _):
-        s = engine.step(s, jnp.zeros(engine.num_controls))
-        return s, (engine.joint_gap(s), engine.energy(s))
-
-    final, (gaps, energies) = jit(lambda s: jax.lax.scan(one, s, None, length=steps))(state)
-    start = float(engine.energy(state))
+    start, (gaps, energies), finite = coast(engine, seconds, lambda s: (engine.joint_gap(s), engine.energy(s)))
+    level = float(engine.energy(start))
     return {
-        "steps": steps,
+        "steps": len(gaps),
         "max_joint_gap_m": float(jnp.max(gaps)),
-        "max_energy_gain_J": float(jnp.max(energies) - start),
-        "energy_change_J": float(energies[-1] - start),
-        "finite": bool(np.all(np.isfinite(np.asarray(jax.tree.leaves(final)[0])))),
+        "max_energy_gain_J": float(jnp.max(energies) - level),
+        "energy_change_J": float(energies[-1] - level),
+        "finite": finite,
     }
 
 
@@ -293,24 +300,15 @@ def resting(engine: Engine, seconds: float = 10.0) -> dict:
     at the end (where the dropped model came to rest), its range over the last second (still
     moving?) and the largest rise of mechanical energy over the second half above its level at
     the half (a model at rest that gains energy blew up)."""
-    steps = int(round(seconds / engine.dt))
-    last_second = int(round(1.0 / engine.dt))
-
-    def one(s, _):
-        s = engine.step(s, jnp.zeros(engine.num_controls))
-        return s, (engine.root_height(s), engine.energy(s))
-
-    final, (heights, energies) = jit(lambda s: jax.lax.scan(one, s, None, length=steps))(engine.init())
-    heights, energies = np.asarray(heights), np.asarray(energies)
+    _, measured, finite = coast(engine, seconds, lambda s: (engine.root_height(s), engine.energy(s)))
+    heights, energies = (np.asarray(x) for x in measured)
+    last_second, half = int(round(1.0 / engine.dt)), len(heights) // 2
     return {
         "seconds": seconds,
         "root_height_m": round(float(heights[-1]), 4),
-        "root_height_last_second_m": [
-            round(float(heights[-last_second:].min()), 4),
-            round(float(heights[-last_second:].max()), 4),
-        ],  # fmt: skip
-        "energy_rise_second_half_J": round(float(energies[steps // 2 :].max() - energies[steps // 2 - 1]), 3),
-        "finite": bool(np.all(np.isfinite(np.asarray(jax.tree.leaves(final)[0])))),
+        "root_height_last_second_m": [round(float(f(heights[-last_second:])), 4) for f in (np.min, np.max)],
+        "energy_rise_second_half_J": round(float(energies[half:].max() - energies[half - 1]), 3),
+        "finite": finite,
     }
 
 

@@ -92,10 +92,11 @@ def engine(name: str, kind: str, solver: str = "dbd"):
     or dbd-tree: DBD with `finalize(tree_solve=True)`) or brax-positional on a model."""
     xml = ASSETS / f"{name}.xml"
     if kind == "dbdjax":
+        from brax_comparison import DBD_ITERATIONS, DBDJAX_VARIANTS  # beside this script: the same settings
+
         import dbdjax as dbd
 
-        options = {"solver": "dbd", "tree_solve": True} if solver == "dbd-tree" else {"solver": solver}
-        model = dbd.load_mjcf(xml, substeps=1, iterations=4, **options)
+        model = dbd.load_mjcf(xml, substeps=1, iterations=DBD_ITERATIONS, **DBDJAX_VARIANTS[solver])
         return dbd.init(model), lambda s, c: dbd.step(model, s, c), np.asarray(model.control_range), model
     from brax.io import mjcf
     from brax.positional import pipeline
