@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call's worth of GPU measurements, for a session lent a GPU machine for a few minutes
-# (session 46 ran these steps by hand on an H200; README "Side by side with Brax").
+# (session 46 ran these steps by hand on an H200; docs/brax_comparison.md).
 #
 # Here, once (the machine has JAX with CUDA but not brax or mujoco, and cannot download):
 #   echo /.whl/ >> .git/info/exclude

@@ -1,7 +1,7 @@
 """What XLA's GPU options do to a physics step's time, each option set in a process of its own.
 
 On the GPU a dbdjax DBD humanoid step cost about 2.3 ms at batch 1 and hardly more up to batch
-4096 (session 12, README "Throughput, GPU"): its time is the host launching a long sequence of
+4096 (session 12, docs/brax_comparison.md, "Throughput, GPU"): its time is the host launching a long sequence of
 small kernels, one loop trip after another, not arithmetic. XLA can record kernels into CUDA
 graphs ("command buffers", `xla_gpu_enable_command_buffer`, by default for straight-line
 fusions only; `WHILE` and `CONDITIONAL` add loops and branches as graph nodes) or unroll the

@@ -1,6 +1,6 @@
 """Which lines of dbdjax become the kernels of a compiled step, read from XLA's optimised HLO.
 
-On the GPU a step's time is its number of kernels (README "Side by side with Brax", session 46:
+On the GPU a step's time is its number of kernels (docs/brax_comparison.md, session 46:
 1,456 kernels per humanoid step at 1.9 us each, the GPU busy throughout). XLA writes the program it
 runs, after fusion, with `XLA_FLAGS=--xla_dump_to=DIR`; this script reads one such
 `*after_optimizations.txt` (plain or .gz) and counts its kernels per step: every fusion, custom call

@@ -14,7 +14,7 @@ the build pose (action 0, every drive holding the standing pose) and the capture
    fraction that survives the whole episode.
 5. The solver budget: an ankle lean of -0.036 rad ramped in over 1 s, no pushes, 150 steps, at
    several substeps x iterations: where the ankles end and whether the doll stands (at 2 x 8 the
-   ankles sag to -0.1 rad and it falls: README, "The solver budget sets the ankles' stiffness").
+   ankles sag to -0.1 rad and it falls: docs/reinforcement_learning.md, "The solver budget sets the ankles' stiffness").
 6. Ramped ankle leans under the env's pushes, 48 episodes of 300 steps, at two budgets.
 7. The feet-in-place bound under the env's own push sequences: the capture point of an inverted
    pendulum (a point mass, and the rigid doll turning on its feet) kicked by each episode's pushes

@@ -1138,7 +1138,7 @@ class ModelBuilder:
           direct solve, unilateral and within the friction cone by one active-set step
           (solvers/tree_contacts.py): they carry the load (a standing ragdoll's 687 N on its feet)
           and a leaning ragdoll stands at 1 substep x 1 iteration (under the env's pushes it
-          needs 2 substeps: README, session 27). After the last sweep one more direct solve takes each
+          needs 2 substeps: docs/brax_comparison.md, session 27). After the last sweep one more direct solve takes each
           tree joint whole: point, rotation lock, rotors (armature), the soft angle limits past their
           bounds and its drive within its torque limit, so a joint with a heavy rotor, pressed on a
           limit or driven is solved with its point (Brax's dropped ant lands at 1 iteration as at 32
@@ -1147,7 +1147,7 @@ class ModelBuilder:
         point_sweeps: sweeps of the joints' points alone after the `iterations` whole-joint sweeps
           (`solvers.dbd.sweep_joint_points`), which close what the other rows of a joint left open
           at its neighbours' points. Brax's ant at 1 substep x 4 iterations, dropped: largest joint
-          gap 19.6 -> 3.8 mm with 2 point sweeps (README, "Point sweeps"). Contacts, limits and
+          gap 19.6 -> 3.8 mm with 2 point sweeps (docs/brax_comparison.md, "Point sweeps"). Contacts, limits and
           drives are not in the point sweeps, which can undo them: with 2, the driven ragdoll of
           `examples/ragdoll_demo.py` fell (pelvis 0.13 m) and its 10,000 random-action steps went
           64 mm into the floor (its test allows 20 mm, and passes without). DBD solver only; 0 (none) by

@@ -11,17 +11,17 @@ component by component, which XLA fuses into the kernels around them: each takes
 components, computes on those and stacks its result once (`_components`). An operation on a whole
 (..., 3) or (..., 4) array inside one (`q / |q|`, `w * t` with w broadcast along the components)
 kept XLA:CPU from fusing a chain of them into arithmetic on whole components: Brax's humanoid
-stepped 1.2x slower at batch 256 (README, "Session 42"). Each is a JAX primitive of its own
+stepped 1.2x slower at batch 256 (docs/brax_comparison.md, "Session 42"). Each is a JAX primitive of its own
 (`_written_out_primitive`), for two reasons:
 - Its derivative is a matrix (the derivative at the primals) times the tangent, summed over the
   last axis (`_times`), which reverse mode transposes into products again. Left to JAX, every
   component slice `v[..., k]` would become, in reverse mode, a kernel of its own that pads the
   slice's cotangent back to the whole vector (on CPU a sixth of the kernels of Brax's ant's
-  gradient): Brax's humanoid's gradient ran 1.9x faster (README, "Session 39").
+  gradient): Brax's humanoid's gradient ran 1.9x faster (docs/brax_comparison.md, "Session 39").
 - A traced program holds one equation for a product instead of its ~25 component operations, and
   every transformation (vmap, linearize, remat, transpose) walks the program: the humanoid's step
   is traced as 7,854 equations instead of 20,193, and the grad of its 100-step rollout in 10 s
-  instead of 19 (README, "Session 40: the products as primitives"). Only the lowering to XLA writes
+  instead of 19 (docs/brax_comparison.md, "Session 40: the products as primitives"). Only the lowering to XLA writes
   the components out. Arguments whose types name a mesh (`shard_map`, explicit sharding) take the
   written-out components directly (`_unsharded`).
 """

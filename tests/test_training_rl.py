@@ -298,7 +298,7 @@ def test_checkpoint_round_trips_and_the_loaded_policy_acts_the_same(stand, tmp_p
 def test_ppo_improves_the_return_on_ragdoll_stand(stand_full):
     """Exploration on the ankles only (`PPOConfig.explored_actions`): noise of std 0.01 on every
     action entry shortens the home pose's training episodes by a third, and PPO trained on that
-    policy made the deterministic one worse (README: Reinforcement learning).
+    policy made the deterministic one worse (docs/reinforcement_learning.md).
 
     Judged on 128 paired evaluation episodes: the pushes make one episode's return vary by about
     70, so 32 episodes (the earlier setting: gains of 21-32 measured at 1.7-2.7 standard errors)
@@ -307,7 +307,7 @@ def test_ppo_improves_the_return_on_ragdoll_stand(stand_full):
     Independent exploration noise (session 17): with AR(1) noise (rho 0.9, this test's setting
     until then) the policy learned an ankle feedback that counters its own noise and lost return
     for its first 100 iterations. With independent noise at the env's 4 x 8 physics, 32
-    iterations gained -1.46 +- 3.57 and 100 gained 38.35 +- 6.57 (README: Reinforcement learning)."""
+    iterations gained -1.46 +- 3.57 and 100 gained 38.35 +- 6.57 (docs/reinforcement_learning.md)."""
     config = ppo.PPOConfig(num_envs=64, unroll_length=16, num_minibatches=2, update_epochs=4,
                            explored_actions=ankle_actions(stand_full))  # fmt: skip
     result = ppo.train(stand_full, config, total_steps=PPO_STEPS, eval_episodes=128, evaluate_initial=True,
@@ -329,7 +329,7 @@ def test_ppo_improves_the_return_on_ragdoll_stand(stand_full):
 def test_apg_improves_the_return_on_ragdoll_stand(stand_long):
     """Gradients through 64 env steps (2.1 s): at 8 (0.27 s) the gradient saw the shaping terms
     and not the falls, and training lowered the return (119.55 -> 67.27); at 32 it held it
-    (+0.80 +- 2.31). README: Reinforcement learning."""
+    (+0.80 +- 2.31). docs/reinforcement_learning.md."""
     config = apg.APGConfig(num_envs=8, horizon=64, learning_rate=3e-5)
     result = apg.train(stand_long, config, updates=APG_UPDATES, eval_episodes=32, evaluate_initial=True, progress=False)
     gain, error = paired_gain(result.initial_evaluation, result.evaluation)

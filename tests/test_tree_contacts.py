@@ -106,7 +106,7 @@ def test_tree_solve_slides_a_jointed_stack_above_the_friction_angle_at_g_sin_min
 def test_tree_solve_holds_a_leaning_ragdoll_on_its_feet_with_its_weight_on_them():
     # The standing doll leaning forwards on its ankles (target -0.036 rad, ramped in over 1 s) at
     # 2 x 4. With the hold its feet carried 29 N of its weight, its heels rose and it toppled forwards
-    # between 2 and 3 s (README, session 26). Now its feet carry its 686.7 N, and its ankles hold
+    # between 2 and 3 s (docs/brax_comparison.md, session 26). Now its feet carry its 686.7 N, and its ankles hold
     # the drive's own static sag (-0.0375 rad: the 11.8 N m each carries at 8000 N m/rad).
     builder, doll = ragdoll.build()
     model = builder.finalize(dt=ragdoll.DT, substeps=2, iterations=4, tree_solve=True)

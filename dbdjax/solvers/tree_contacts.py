@@ -6,7 +6,7 @@ body, and it collapses. Session 24 held the touching bodies along their normals 
 stiffness with no error and no multiplier, `contact_hold`, now only for contacts between two
 moving bodies): that hold carried the weight the contacts should (the standing ragdoll's feet took
 29 N of its 687 N), glued the feet in both directions and did not pull a rising heel back, so a leaning doll
-toppled forwards as a rigid plank (README, session 26).
+toppled forwards as a rigid plank (docs/brax_comparison.md, session 26).
 
 How. A contact point between a moving body and the world has three rows (DBD (84)-(91): the gap
 along n and the slip along t1, t2, as `contacts.project_contacts` has them), each touching one
