@@ -449,7 +449,7 @@ class Options:
     depenetration_speed: float = 1.0
     restitution_iterations: int = 2  # Gauss-Seidel sweeps of the velocity pass
     initial_guess: str = "zero"  # "zero": dX = 0 (Algorithm 1); "tree": exact solve of the tree's linearised points
-    tree_solve: bool = False  # direct solves of the joint tree: points after each sweep, whole joints after the last
+    tree_solve: bool = False  # direct solves of the joint tree: points after the sweeps, whole joints after the last
     point_sweeps: int = 0  # DBD solver: sweeps of the joints' points alone after the whole-joint sweeps
     baumgarte: float = 0.05  # impulse solver: beta of SI (17) for contacts, springs' links, distances
 

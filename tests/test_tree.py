@@ -221,6 +221,37 @@ def test_tree_solve_holds_a_whipping_chain_at_one_substep():
     assert gaps[True] < 1e-5
 
 
+@pytest.mark.parametrize("iterations, sweeps, runs", [(3, None, 3), (3, 2, 2), (4, 1, 1), (1, 0, 0), (2, 5, 2)])
+def test_a_tree_step_ends_only_the_first_sweeps_it_is_given(iterations, sweeps, runs):
+    # With angular rows the whole-joint solve follows the last sweep, and takes the points and
+    # contacts again: the points' solve is given the sweeps before it only. A step that moves
+    # body 0 by 1 m, over no constraints, moves it once per sweep it ends.
+    model = scenes.chain(2, dt=1 / 60)
+    table = dbd_solver.body_table(model, dbd.init(model), 1 / 60)
+    step = dbd_solver.TreeStep(lambda dx, dtheta, lams: (jnp.ones_like(dx), jnp.zeros_like(dtheta), []), (), sweeps)
+    dx, _, _ = dbd_solver.gauss_seidel((), [], table, iterations, [], step)
+    assert float(dx[0, 0]) == runs
+
+
+def test_tree_solve_with_whole_joints_skips_the_points_solve_after_the_last_sweep():
+    # Brax's ant has angular rows (its rotors and limits): at one sweep its step traces no points'
+    # solve inside the sweeps, only the whole-joint one after them.
+    model = dbd.load_mjcf(ASSETS / "ant.xml", iterations=1, tree_solve=True)
+    calls = []
+    original = tree.direct_step
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("targets") is not None or (len(args) > 4 and args[4] is not None))
+        return original(*args, **kwargs)
+
+    tree.direct_step = counted
+    try:
+        jax.eval_shape(lambda s: dbd.step(model, s), dbd.init(model))
+    finally:
+        tree.direct_step = original
+    assert calls == [True]  # the whole-joint solve alone
+
+
 def test_tree_solve_is_refused_by_the_impulse_solver():
     with pytest.raises(ValueError, match="finalize: tree_solve is a step of the DBD solver's iterations"):
         scenes.chain(3, dt=1 / 60, solver="impulse", tree_solve=True)

@@ -1,5 +1,5 @@
 """An exact linear solve over the joint tree: Algorithm 1's initial guess, and the direct steps of
-`tree_solve` (the points after each sweep, then the joints whole after the last).
+`tree_solve` (the points after the sweeps, then the joints whole after the last).
 
 Why. Gauss-Seidel moves a correction one joint per colour sweep, so from the guess dX = 0 it
 cannot build the tension of a long chain within a few iterations (DBD 10.1: "it requires N - 1
@@ -24,13 +24,14 @@ is exactly the point they converge to from dX = 0. Angular rows, limits, drives,
 sliders and the joints that close a loop are left to the iterations.
 
 With `finalize(tree_solve=True)` the same solve, linearised where the sweep left the bodies, also
-ends every iteration (block Gauss-Seidel: the tree's points one block, solved directly; the
-solver's `TreeStep`), so the points hold to second order whatever the sweeps left. After the last
-sweep one more solve takes each tree joint whole: with its point, its rotation lock (a hinge's
-axle alignment, a universal's lock, a fixed joint's), its rotors (armature), its hinge or
-universal / gimbal soft angle limits past their bounds and its drive (DBD 9) while inside its
-torque limit, each in the compliance form of DBD (49) beside the point rows (`angular_rows`; a
-degree of freedom's rotor, limit and drive as one row: up to 9 rows a joint instead of 3). Without
+ends every iteration but the last, where the whole-joint solve follows (block Gauss-Seidel: the
+tree's points one block, solved directly; the solver's `TreeStep`), so the points hold to second
+order whatever the sweeps left. After the last sweep one more solve takes each tree joint whole:
+with its point, its rotation lock (a hinge's axle alignment, a universal's lock, a fixed joint's),
+its rotors (armature), its hinge or universal / gimbal soft angle limits past their bounds and its
+drive (DBD 9) while inside its torque limit, each in the compliance form of DBD (49) beside the
+point rows (`angular_rows`; a degree of freedom's rotor, limit and drive as one row: up to 9 rows a
+joint instead of 3). Without
 them the direct steps closed the points by swinging joints whose rotors are heavy and bending them
 through their limits, which the sweeps then fought (Brax's ant sank to 0.18 m), and undid what the
 sweeps' drives had held (a driven arm sagged 0.61 rad). Those rows stay out of the solves inside
