@@ -233,23 +233,21 @@ def test_a_tree_step_ends_only_the_first_sweeps_it_is_given(iterations, sweeps, 
     assert float(dx[0, 0]) == runs
 
 
-def test_tree_solve_with_whole_joints_skips_the_points_solve_after_the_last_sweep():
+def test_tree_solve_with_whole_joints_skips_the_points_solve_after_the_last_sweep(monkeypatch):
     # Brax's ant has angular rows (its rotors and limits): at one sweep its step traces no points'
-    # solve inside the sweeps, only the whole-joint one after them.
+    # solve inside the sweeps, only the whole-joint one after them. Each traced `direct_step` says
+    # whether it solves the joints whole (its `targets`).
     model = dbd.load_mjcf(ASSETS / "ant.xml", iterations=1, tree_solve=True)
-    calls = []
+    whole = []
     original = tree.direct_step
 
-    def counted(*args, **kwargs):
-        calls.append(kwargs.get("targets") is not None or (len(args) > 4 and args[4] is not None))
-        return original(*args, **kwargs)
+    def counted(model, bodies, touching=None, multipliers=None, targets=None, close=False):
+        whole.append(targets is not None)
+        return original(model, bodies, touching, multipliers, targets, close)
 
-    tree.direct_step = counted
-    try:
-        jax.eval_shape(lambda s: dbd.step(model, s), dbd.init(model))
-    finally:
-        tree.direct_step = original
-    assert calls == [True]  # the whole-joint solve alone
+    monkeypatch.setattr(tree, "direct_step", counted)
+    jax.eval_shape(lambda s: dbd.step(model, s), dbd.init(model))
+    assert whole == [True]  # the whole-joint solve alone
 
 
 def test_tree_solve_is_refused_by_the_impulse_solver():
