@@ -24,9 +24,10 @@ child processes, then time N rollout calls each, one after the other in alternat
 that each pair of calls meets the same load; recorded: every pair's CPU times, the median of the
 pairs' ratios and the ratio of the two minima. On a loaded machine this is the steadiest ratio.
 The settings are brax_comparison.py's (--solver: dbdjax's solver, dbd by default; dbd-tree: DBD
-with tree_solve): 1 substep, 4 iterations, float32, uniform random controls in the actuators'
-ctrlrange, the XML's dt. Times: the best of `--repeats` timed calls (wall and this process's CPU
-time; on a shared machine CPU time is the steadier of the two).
+with tree_solve; dbd-tree-1: the same at one sweep): 1 substep, 4 iterations (1 for dbd-tree-1),
+float32, uniform random controls in the actuators' ctrlrange, the XML's dt. Times: the best of
+`--repeats` timed calls (wall and this process's CPU time; on a shared machine CPU time is the
+steadier of the two).
 """
 
 from __future__ import annotations
@@ -87,16 +88,24 @@ def hlo_counts(compiled) -> dict:
     }
 
 
+def _iterations(solver: str) -> int:
+    """The sweeps per substep brax_comparison.py runs dbdjax's `solver` at."""
+    from brax_comparison import DBD_ITERATIONS, DBDJAX_VARIANTS  # beside this script
+
+    return DBDJAX_VARIANTS.get(solver, {}).get("iterations", DBD_ITERATIONS)
+
+
 def engine(name: str, kind: str, solver: str = "dbd"):
     """(init state, step(state, control), control range, dt) of dbdjax (its `solver`: dbd, impulse,
-    or dbd-tree: DBD with `finalize(tree_solve=True)`) or brax-positional on a model."""
+    dbd-tree: DBD with `finalize(tree_solve=True)`, or dbd-tree-1: the same at one sweep) or
+    brax-positional on a model."""
     xml = ASSETS / f"{name}.xml"
     if kind == "dbdjax":
         from brax_comparison import DBD_ITERATIONS, DBDJAX_VARIANTS  # beside this script: the same settings
 
         import dbdjax as dbd
 
-        model = dbd.load_mjcf(xml, substeps=1, iterations=DBD_ITERATIONS, **DBDJAX_VARIANTS[solver])
+        model = dbd.load_mjcf(xml, **{"substeps": 1, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]})
         return dbd.init(model), lambda s, c: dbd.step(model, s, c), np.asarray(model.control_range), model
     from brax.io import mjcf
     from brax.positional import pipeline
@@ -283,7 +292,10 @@ def main() -> None:
     parser.add_argument("--out", help="write the results here (JSON)")
     parser.add_argument("--note", default="")
     parser.add_argument(
-        "--solver", default="dbd", choices=["dbd", "impulse", "dbd-tree"], help="dbdjax's solver (dbd-tree: tree_solve)"
+        "--solver",
+        default="dbd",
+        choices=["dbd", "impulse", "dbd-tree", "dbd-tree-1"],
+        help="dbdjax's solver (dbd-tree: tree_solve; dbd-tree-1: tree_solve at one sweep)",
     )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--model", help=argparse.SUPPRESS)
@@ -303,8 +315,8 @@ def main() -> None:
     here = str(Path(__file__).resolve().parents[1])
     started = time.perf_counter()
     results: dict = {
-        "settings": f"solver {args.solver}, 1 substep, 4 iterations, float32, the XML's dt, uniform random controls "
-        "in ctrlrange; "
+        "settings": f"solver {args.solver}, 1 substep, {_iterations(args.solver)} iterations, float32, the XML's dt, "
+        "uniform random controls in ctrlrange; "
         f"ms/step of a jitted {HORIZON}-step rollout (lax.scan of the vmapped step), best of {args.repeats}",
         "machine": machine.describe(),
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
