@@ -88,11 +88,11 @@ def hlo_counts(compiled) -> dict:
     }
 
 
-def _iterations(solver: str) -> int:
-    """The sweeps per substep brax_comparison.py runs dbdjax's `solver` at."""
-    from brax_comparison import DBD_ITERATIONS, DBDJAX_VARIANTS  # beside this script
+def _dbdjax_settings(solver: str) -> dict:
+    """The `finalize` settings brax_comparison.py runs dbdjax's `solver` with (one substep)."""
+    from brax_comparison import DBD_ITERATIONS, DBDJAX_VARIANTS  # beside this script: the same settings
 
-    return DBDJAX_VARIANTS.get(solver, {}).get("iterations", DBD_ITERATIONS)
+    return {"substeps": 1, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]}
 
 
 def engine(name: str, kind: str, solver: str = "dbd"):
@@ -101,11 +101,9 @@ def engine(name: str, kind: str, solver: str = "dbd"):
     brax-positional on a model."""
     xml = ASSETS / f"{name}.xml"
     if kind == "dbdjax":
-        from brax_comparison import DBD_ITERATIONS, DBDJAX_VARIANTS  # beside this script: the same settings
-
         import dbdjax as dbd
 
-        model = dbd.load_mjcf(xml, **{"substeps": 1, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]})
+        model = dbd.load_mjcf(xml, **_dbdjax_settings(solver))
         return dbd.init(model), lambda s, c: dbd.step(model, s, c), np.asarray(model.control_range), model
     from brax.io import mjcf
     from brax.positional import pipeline
@@ -315,7 +313,8 @@ def main() -> None:
     here = str(Path(__file__).resolve().parents[1])
     started = time.perf_counter()
     results: dict = {
-        "settings": f"solver {args.solver}, 1 substep, {_iterations(args.solver)} iterations, float32, the XML's dt, "
+        "settings": f"solver {args.solver}, 1 substep, {_dbdjax_settings(args.solver)['iterations']} iterations, "
+        "float32, the XML's dt, "
         "uniform random controls in ctrlrange; "
         f"ms/step of a jitted {HORIZON}-step rollout (lax.scan of the vmapped step), best of {args.repeats}",
         "machine": machine.describe(),

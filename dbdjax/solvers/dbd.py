@@ -161,11 +161,14 @@ class TreeStep(NamedTuple):
     families: tuple[int, ...]
     sweeps: int | None = None
 
-    def ends(self, iterations: int) -> str:
-        """Which of `iterations` sweeps it ends: "every", "none" or "some" (the first `sweeps`)."""
+    def after_sweep(self, sweep, iterations: int, step: Callable, carry):
+        """`step(carry)` if sweep `sweep` (of `iterations`) is one this solve ends, else `carry`.
+        The sweep count is not batched: a branch taken, not a select under vmap."""
         if self.sweeps is None or self.sweeps >= iterations:
-            return "every"
-        return "none" if self.sweeps <= 0 else "some"
+            return step(carry)
+        if self.sweeps <= 0:
+            return carry
+        return jax.lax.cond(sweep < self.sweeps, step, lambda c: c, carry)
 
 
 def gauss_seidel(
@@ -180,7 +183,7 @@ def gauss_seidel(
     per colour: the compile time of a jointed model no longer grows with its number of colours. A
     colour of its own (different variants from its neighbours) is unrolled. What does not change during the
     sweeps (the poses, masses, inertias and velocities of the bodies each node reads) is gathered
-    once, before them. tree_step: run after each sweep it ends (`TreeStep.ends`; None: none).
+    once, before them. tree_step: run after each sweep it ends (`TreeStep.after_sweep`; None: none).
     """
     n = table.dx.shape[0] - 1
     present = [_present(colour, families) for colour in colours]
@@ -198,8 +201,6 @@ def gauss_seidel(
         dx = jnp.concatenate([m[0] for m in moved] + [dx])[slot]
         dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta])[slot]
         return (dx, dtheta), [m[2] for m in moved]
-
-    ends = "none" if tree_step is None else tree_step.ends(iterations)
 
     def direct_step(carry):
         dx, dtheta, updated = carry
@@ -223,11 +224,8 @@ def gauss_seidel(
             else:
                 (dx, dtheta), new = jax.lax.scan(functools.partial(colour, run=run), (dx, dtheta), xs)
             updated.append(new)
-        if ends == "every":
-            dx, dtheta, updated = direct_step((dx, dtheta, updated))
-        elif ends == "some":  # the sweep count is not batched: a branch taken, not a select under vmap
-            carry = (dx, dtheta, updated)
-            dx, dtheta, updated = jax.lax.cond(sweep < tree_step.sweeps, direct_step, lambda c: c, carry)
+        if tree_step is not None:
+            dx, dtheta, updated = tree_step.after_sweep(sweep, iterations, direct_step, (dx, dtheta, updated))
         return (dx, dtheta, updated), None
 
     def node_order(lams, f, default):
@@ -255,8 +253,6 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
     share = jnp.asarray(1.0 / np.maximum(np.bincount(touched, minlength=n + 1), 1), table.dx.dtype)[:, None]
     fixed = [_fixed(table, families[f].bodies) for f in used]
 
-    ends = "none" if tree_step is None or tree_step.families[0] not in used else tree_step.ends(iterations)
-
     def direct_step(carry):
         dx, dtheta, lams = carry
         k = [used.index(f) for f in tree_step.families]
@@ -274,10 +270,8 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
         dx = dx + jax.ops.segment_sum(dx_rows, touched, n + 1) * share
         dtheta = dtheta + jax.ops.segment_sum(dtheta_rows, touched, n + 1) * share
         lams = [m[2] for m in moved]
-        if ends == "every":
-            dx, dtheta, lams = direct_step((dx, dtheta, lams))
-        elif ends == "some":
-            dx, dtheta, lams = jax.lax.cond(sweep < tree_step.sweeps, direct_step, lambda c: c, (dx, dtheta, lams))
+        if tree_step is not None and tree_step.families[0] in used:
+            dx, dtheta, lams = tree_step.after_sweep(sweep, iterations, direct_step, (dx, dtheta, lams))
         return (dx, dtheta, lams), None
 
     start = [multipliers[f] for f in used]
