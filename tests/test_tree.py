@@ -250,6 +250,39 @@ def test_tree_solve_with_whole_joints_skips_the_points_solve_after_the_last_swee
     assert whole == [True]  # the whole-joint solve alone
 
 
+def _calls(jaxpr, name: str) -> int:
+    """Calls of the jitted function `name` in a jaxpr, those in its sub-jaxprs (loops, branches) included."""
+    count = 0
+    for equation in jaxpr.eqns:
+        count += equation.primitive.name in ("jit", "pjit") and equation.params["name"] == name
+        for param in equation.params.values():
+            for value in param if isinstance(param, (list, tuple)) else [param]:
+                inner = getattr(value, "jaxpr", value)
+                if hasattr(inner, "eqns"):
+                    count += _calls(inner, name)
+    return count
+
+
+@pytest.mark.parametrize("asset", ["ant.xml", "humanoid.xml"])
+def test_the_whole_joint_solve_traces_its_second_solve_as_its_first_run_again(asset, monkeypatch):
+    # The active-set step's second solve (a contact point let go or slid, a drive saturated) runs
+    # the first one's traced program a second time (a scan of two turns) instead of a copy of it:
+    # the step's program holds one factorisation of the tree. Both Brax models have contacts in the
+    # solve, and at one sweep no points' solve inside the sweeps.
+    model = dbd.load_mjcf(ASSETS / asset, iterations=1, tree_solve=True)
+    original = tree.factor
+
+    def factorisation(*args, **kwargs):
+        return original(*args, **kwargs)._replace(indices=None, joint=None, empty=None)
+
+    def factor(model, *args, **kwargs):  # a call of `factorisation` in the program, the slots' layout static
+        return jax.jit(factorisation)(model, *args, **kwargs)._replace(**tree._slots(model.structure)._asdict())
+
+    monkeypatch.setattr(tree, "factor", factor)
+    jaxpr = jax.make_jaxpr(lambda s: dbd.step(model, s))(dbd.init(model)).jaxpr
+    assert _calls(jaxpr, "factorisation") == 1
+
+
 def test_tree_solve_is_refused_by_the_impulse_solver():
     with pytest.raises(ValueError, match="finalize: tree_solve is a step of the DBD solver's iterations"):
         scenes.chain(3, dt=1 / 60, solver="impulse", tree_solve=True)

@@ -445,6 +445,20 @@ class Factors(NamedTuple):
     inverses: jnp.ndarray  # (L, W, max(6, R), 6 + R) [D_b^-1 | S_j^-1], each in its top rows
 
 
+class _Slots(NamedTuple):
+    """The level slots' layout (`Factors`' first fields)."""
+
+    indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
+    joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
+    empty: np.ndarray  # (L, W) bool
+
+
+def _slots(structure: Structure) -> _Slots:
+    tree_joint, tree_body, tree_parent = forest(structure)
+    empty = tree_joint == structure.num_joints
+    return _Slots(np.stack([tree_body, tree_parent], axis=-1), np.where(empty, 0, tree_joint), empty)
+
+
 def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None,
            angular: AngularRows | None = None,
            contact: tree_contacts.ContactRows | None = None) -> Factors:  # fmt: skip
@@ -461,8 +475,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
     """
     inv_mass, inv_inertia = bodies.inv_mass, bodies.inv_inertia
     structure = model.structure
-    tree_joint, tree_body, tree_parent = forest(structure)
-    world, num_joints = structure.num_bodies, structure.num_joints
+    world = structure.num_bodies
     dtype = inv_inertia.dtype
     _, arm_a, arm_b = point_gaps(model, bodies) if points is None else points
 
@@ -480,8 +493,8 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         blocks = blocks + tree_contacts.added_blocks(contact, world)
 
     # Per slot (L, W): the joint's Jacobian toward its child body and toward its parent body.
-    empty = tree_joint == num_joints
-    joint = np.where(empty, 0, tree_joint)
+    indices, joint, empty = _slots(structure)
+    tree_body, tree_parent = indices[..., 0], indices[..., 1]
     child_is_a = structure.joint_body_a.array[joint] == tree_body
     sign = np.where(empty, 0.0, np.where(child_is_a, 1.0, -1.0))
     parent_sign = np.where(tree_parent == world, 0.0, -sign)
@@ -501,7 +514,6 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
 
     # Each level's inputs, carry and outputs are packed into one array apiece: on CPU every array a
     # loop step slices or updates is one more kernel, and the levels run one after another.
-    indices = np.stack([tree_body, tree_parent], axis=-1)  # (L, W, 2)
     matrices = jnp.concatenate([j_child, j_parent, alpha[..., None]], axis=-1)  # (L, W, R, 13)
     rows = matrices.shape[-2]
     eye = jnp.eye(rows, dtype=dtype)
@@ -649,7 +661,9 @@ class _Solved(NamedTuple):
 
 def _solve_once(model: Model, bodies: BodySet, touching, multipliers, targets, saturated=None,
                 settled=None, load=None) -> _Solved:  # fmt: skip
-    """One `factor` and `solve` at the configuration of `bodies` (load: `solve`'s)."""
+    """One `factor` and `solve` at the configuration of `bodies`. touching: as `direct_step`'s, with
+    settled its active set (`tree_contacts.unsettled` for a first solve, else `settle`'s); saturated:
+    `angular_rows`'; load: `solve`'s."""
     structure = model.structure
     points = point_gaps(model, bodies)
     angular = None if targets is None else angular_rows(model, bodies, multipliers, *targets, saturated)
@@ -708,6 +722,17 @@ def _closing_step(model: Model, factors: Factors, bodies: BodySet, multipliers: 
     return x[:, :3], x[:, 3:], kappa[:, :3]
 
 
+class _ActiveSet(NamedTuple):
+    """What one solve of `direct_step`'s active-set step is taken with."""
+
+    contact_multipliers: tuple  # `Touching.multipliers`, plus the loads of the points settled ((): no contacts)
+    multipliers: jnp.ndarray  # (J, joints.NUM_MULTIPLIERS) the joints', plus the saturated drives' loads
+    saturated: jnp.ndarray | None  # (J, 3) bool: drive rows left out (None: no drive has a torque limit)
+    settled: tree_contacts.Settled | None  # the contacts' active set (None: no contacts)
+    load: jnp.ndarray  # (N + 1, 6) the left-out rows' loads on their bodies (force, torque)
+    drive_load: jnp.ndarray  # (J, 3) each saturated drive row's multiplier step
+
+
 def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching | None = None,
                 multipliers: jnp.ndarray | None = None, targets: tuple | None = None, close: bool = False,
                 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, tuple]:  # fmt: skip
@@ -735,9 +760,9 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     again with every point sticking, a second gives way to the first.
     """
     structure = model.structure
-    first = _solve_once(model, bodies, touching, multipliers, targets)
-    contact_increments = () if touching is None else tree_contacts.increments(touching, first.contact_steps)
-    lam = jnp.zeros_like(first.increments) if multipliers is None else multipliers
+    lam = multipliers
+    if lam is None:
+        lam = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), bodies.inv_inertia.dtype)
 
     def chord_factors(factors):  # what the closing step needs of a solve's factors (none without it)
         return (factors.matrices, factors.inverses) if close else ()
@@ -750,31 +775,34 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         chord_dx, chord_dtheta, chord_kappa = _closing_step(model, factors, after, lam + increments)
         return dx + chord_dx, dtheta + chord_dtheta, increments.at[:, _POINT].add(chord_kappa), contacts
 
-    limited = first.angular is not None and _row_groups(structure).drives and structure.joint_drive_limited.array.any()
+    limited = targets is not None and bool(_row_groups(structure).drives) and structure.joint_drive_limited.array.any()
     if not limited and touching is None:
-        return closed((first.dx, first.dtheta, first.increments, contact_increments), first.factors)
+        first = _solve_once(model, bodies, None, multipliers, targets)
+        return closed((first.dx, first.dtheta, first.increments, ()), first.factors)
 
-    saturated = changed = jnp.zeros((), bool)
-    settled = None
-    if limited:
-        _, h = targets
-        before, after = lam[:, _DRIVE], lam[:, _DRIVE] + first.increments[:, _DRIVE]
-        size, bound = _drive_torque(model, after, h)
-        saturated = first.angular.spring_on[-1] & (size > bound)
-        changed = jnp.any(saturated)
-    if touching is not None:
-        settled = tree_contacts.settle(touching, first.contact, first.contact_steps,
-                               jnp.concatenate([first.dx, first.dtheta], axis=-1))  # fmt: skip
-        # A first solve the sliding points' tilts made ill-posed is taken again with every point
-        # sticking, and that is the step (its active set unsettled).
-        first_jammed = first.jammed
-        settled = jax.tree.map(lambda a, b: jnp.where(first_jammed, a, b), tree_contacts.sticking(settled), settled)
-        changed = changed | settled.changed
+    def solved_with(active: _ActiveSet):
+        """One solve with `active`: (its result and the factors the closing step needs, the solve)."""
+        touching_now = None if touching is None else touching._replace(multipliers=active.contact_multipliers)
+        solved = _solve_once(model, bodies, touching_now, active.multipliers, targets, active.saturated,
+                             active.settled, active.load)  # fmt: skip
+        contacts = ()
+        if touching is not None:
+            contacts = tree_contacts.increments(touching, solved.contact_steps + active.settled.load)
+        result = (solved.dx, solved.dtheta, solved.increments.at[:, _DRIVE].add(active.drive_load), contacts)
+        return (result, *chord_factors(solved.factors)), solved
 
-    def again(_):
-        drive_load = jnp.zeros_like(lam[:, _DRIVE])
+    def active_set_after(first: _Solved, active: _ActiveSet):
+        """The active set a second solve is taken with after the `first` (taken with `active`), and
+        () bool whether any row changed."""
+        changed = jnp.zeros((), bool)
+        saturated, drive_load = active.saturated, jnp.zeros_like(lam[:, _DRIVE])
         load = jnp.zeros((structure.num_bodies + 1, 6), bodies.dx.dtype)  # force and torque on each body
         if limited:
+            _, h = targets
+            before, after = lam[:, _DRIVE], lam[:, _DRIVE] + first.increments[:, _DRIVE]
+            size, bound = _drive_torque(model, after, h)
+            saturated = first.angular.spring_on[-1] & (size > bound)
+            changed = jnp.any(saturated)
             # (114); bound and size read only where saturated (an unlimited drive's inf bound would
             # make the branch that is not taken inf, and its zero cotangent NaN in reverse mode).
             scale = jnp.where(saturated, bound, 0.0) / jnp.where(saturated, size, 1.0)
@@ -783,34 +811,56 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
             torque = jnp.einsum("jkc,jk->jc", first.angular.directions[:, -3:], drive_load)
             ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
             load = load.at[ends.reshape(-1), 3:].add(jnp.stack([-torque, torque], axis=1).reshape(-1, 3))
-        again_touching = touching
+        settled, contact_multipliers = active.settled, active.contact_multipliers
         if touching is not None:
+            settled = tree_contacts.settle(touching, first.contact, first.contact_steps,
+                                           jnp.concatenate([first.dx, first.dtheta], axis=-1))  # fmt: skip
+            # A first solve the sliding points' tilts made ill-posed is taken again with every point
+            # sticking, and that is the step (its active set unsettled).
+            jammed = first.jammed
+            settled = jax.tree.map(lambda a, b: jnp.where(jammed, a, b), tree_contacts.sticking(settled), settled)
+            changed = changed | settled.changed
             load = load + tree_contacts.applied(first.contact, settled.load, structure.num_bodies)
             loads = tree_contacts.increments(touching, settled.load)
-            again_touching = touching._replace(
-                multipliers=tuple(lam_c + load_c for lam_c, load_c in zip(touching.multipliers, loads, strict=True))
+            contact_multipliers = tuple(
+                lam_c + load_c for lam_c, load_c in zip(touching.multipliers, loads, strict=True)
             )
         # The load is a right-hand side of the second solve, linearised where the first was. (Moving
         # the bodies first by their free response M~^-1 load and linearising there turned a leg of
         # Brax's ant 0.99 rad before the solve when two feet let go on landing; the rows measured
         # there were far off, and its joints opened 0.6-5 mm in one step instead of 0.007-0.7.)
-        second = _solve_once(model, bodies, again_touching, lam.at[:, _DRIVE].add(drive_load), targets,
-                             saturated if limited else None, settled, load)  # fmt: skip
-        contacts = ()
-        if touching is not None:
-            contacts = tree_contacts.increments(touching, second.contact_steps + settled.load)
-        result = (second.dx, second.dtheta, second.increments.at[:, _DRIVE].add(drive_load), contacts)
-        kept = (result, *chord_factors(second.factors))
-        if touching is None:
-            return kept
-        jammed = second.jammed
-        return jax.tree.map(lambda a, b: jnp.where(jammed, a, b), unchanged, kept)
+        again = _ActiveSet(contact_multipliers, lam.at[:, _DRIVE].add(drive_load), saturated, settled, load, drive_load)
+        return again, changed
 
-    unchanged = ((first.dx, first.dtheta, first.increments, contact_increments), *chord_factors(first.factors))
-    # Taken again only where a row changed (unbatched; under vmap both run, as a select). With
-    # `close`, the kept solve's factors come out too, so the closing step runs once, after.
-    result, *kept_factors = jax.lax.cond(changed, again, lambda _: unchanged, None)
+    # Both solves are one traced `taken`, in a scan of two turns: the second only where a row
+    # changed (unbatched; under vmap both run, as a select). Traced twice, the second solve took
+    # 38% of the time to compile grad of a rollout of Brax's humanoid (dbd-tree-1). With `close`,
+    # the kept solve's factors come out too, so the closing step runs once, after.
+    def in_turn(carry, second):
+        active, kept, changed = carry
+
+        def take(_):
+            new, solved = solved_with(active)
+            if touching is not None:  # a second solve that jams gives way to the first
+                new = jax.tree.map(lambda a, b: jnp.where(second & solved.jammed, a, b), kept, new)
+            # (unbatched: nothing follows the second solve, so its active set is not worked out)
+            again, changed_now = jax.lax.cond(second, lambda _: (active, changed),
+                                              lambda _: active_set_after(solved, active), None)  # fmt: skip
+            return again, new, changed_now
+
+        return jax.lax.cond(second & ~changed, lambda _: carry, take, None), None
+
+    first = _ActiveSet(
+        contact_multipliers=() if touching is None else touching.multipliers,
+        multipliers=lam,
+        saturated=jnp.zeros((structure.num_joints, 3), bool) if limited else None,
+        settled=None if touching is None else tree_contacts.unsettled(touching),
+        load=jnp.zeros((structure.num_bodies + 1, 6), bodies.dx.dtype),
+        drive_load=jnp.zeros_like(lam[:, _DRIVE]),
+    )
+    kept = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(lambda: solved_with(first)[0]))
+    (_, kept, _), _ = jax.lax.scan(in_turn, (first, kept, jnp.zeros((), bool)), jnp.arange(2) == 1)
+    result, *kept_factors = kept
     if not close:
         return result
-    matrices, inverses = kept_factors
-    return closed(result, first.factors._replace(matrices=matrices, inverses=inverses))
+    return closed(result, Factors(*_slots(structure), *kept_factors))

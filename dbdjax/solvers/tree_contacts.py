@@ -125,22 +125,49 @@ def _grouped(rows: jnp.ndarray, touching: Touching) -> list[jnp.ndarray]:
     return parts
 
 
+def _mu(slots) -> jnp.ndarray:
+    """(C, P) each point's friction coefficient: its dynamic one where it slid at the start of the substep."""
+    return jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])
+
+
+def _point_multipliers(slots, lam: jnp.ndarray) -> jnp.ndarray:
+    """(C, P, 3) each point's multipliers so far (lambda_n, kappa_t1, kappa_t2), from its group's (C, 4 P)."""
+    pairs, points = slots.active.shape
+    return lam.reshape(pairs, points, contact_family.MULTIPLIERS_PER_POINT)[..., :3]
+
+
+def unsettled(touching: Touching) -> Settled:
+    """The active set the first direct solve is taken with, before any `settle`: no point let go or
+    entered, and a point slides where it was already sliding at the start of the substep and the
+    sweeps left its friction on the cone |kappa_t| = mu lambda_n (93), along that friction (a point
+    at rest sticks first, `settle`); per row (R,) in `ContactRows` order, as `settle` gives it."""
+    slidings, directions = [], []
+    for slots, lam in zip(touching.slots, touching.multipliers, strict=True):
+        mu, lam = _mu(slots), _point_multipliers(slots, lam)
+        direction, size = math.safe_normalize(jnp.concatenate([lam[..., 1:], jnp.zeros_like(lam[..., :1])], -1))
+        on_cone = (size > 0.0) & (size >= (1.0 - ON_THE_CONE) * mu * lam[..., 0])
+        slidings.append(jnp.repeat((slots.sliding & on_cone)[..., None], 3, axis=-1).reshape(-1))
+        directions.append(jnp.concatenate([jnp.zeros_like(size)[..., None], direction[..., :2]], axis=-1).reshape(-1))
+    sliding, direction = jnp.concatenate(slidings), jnp.concatenate(directions)
+    false = jnp.zeros_like(sliding)
+    return Settled(off=false, sliding=sliding, direction=direction, enter=false,
+                   load=jnp.zeros_like(direction), changed=jnp.zeros((), bool))  # fmt: skip
+
+
 def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies: np.ndarray,
-                 settled: Settled | None = None) -> ContactRows:  # fmt: skip
+                 settled: Settled) -> ContactRows:  # fmt: skip
     """The rows of every point between a moving body of the joint forest and the world, at the
     configuration of `bodies` (the solver's table, N + 1 rows, the world last). tree_bodies: the
-    forest's slot bodies (`tree.forest(structure)[1]`). settled: the active-set step `settle` took
-    (points that let go are off, sliding points have no friction rows), or None: every point that
-    pushes sticks."""
+    forest's slot bodies (`tree.forest(structure)[1]`). settled: the active set (`unsettled` for a
+    first solve, then the step `settle` took): points that let go are off, points that entered are
+    on, sliding points have no friction rows; every other point that pushes sticks."""
     parts = []
     mass = with_world_row(model.bodies.mass)
-    if settled is not None:  # per group, per point (each point's three rows share these)
-        fields = (settled.enter, settled.off, settled.sliding, settled.direction)
-        settled_parts = zip(*(_grouped(x, touching) for x in fields), strict=True)
+    fields = (settled.enter, settled.off, settled.sliding, settled.direction)  # per group, per point (each
+    settled_parts = zip(*(_grouped(x, touching) for x in fields), strict=True)  # point's three rows share these)
     for group, slots, lam in zip(model.structure.contact_groups, touching.slots, touching.multipliers, strict=True):
         moving, b_moves, usable = _sides(model, group, tree_bodies)
-        pairs, points = slots.active.shape
-        lam = lam.reshape(pairs, points, contact_family.MULTIPLIERS_PER_POINT)[..., :3]
+        mu, lam = _mu(slots), _point_multipliers(slots, lam)
         flip = b_moves[:, None, None]
         local = jnp.where(flip, slots.local_b, slots.local_a)  # (C, P, 3) on the moving body
         fixed = jnp.where(flip, slots.local_a, slots.local_b)  # (C, P, 3) world coordinates
@@ -160,23 +187,11 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
         normal_row = np.arange(3) == 0
         compliance = regularisation + jnp.where(normal_row, touching.compliance_h2, 0.0)
         residual = error + jnp.where(normal_row, touching.compliance_h2 * lam, 0.0)
-        mu = jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])  # (C, P)
         touches = usable[:, None] & slots.active  # (C, P)
-        pushes = touches & ((lam[..., 0] > 0.0) | (error[..., 0] < 0.0))
-        if settled is None:
-            # Sliding where the point was already sliding at the start of the substep and the sweeps
-            # left its friction on the cone; a point at rest sticks first (`settle`).
-            friction_direction, friction_size = math.safe_normalize(
-                jnp.concatenate([lam[..., 1:], jnp.zeros_like(lam[..., :1])], -1)
-            )
-            friction_direction = friction_direction[..., :2]
-            on_cone = (friction_size > 0.0) & (friction_size >= (1.0 - ON_THE_CONE) * mu * lam[..., 0])
-            sliding = pushes & slots.sliding & on_cone
-        else:
-            enter, off, slides, direction = next(settled_parts)
-            pushes = (pushes | (touches & enter[..., 0])) & ~off[..., 0]
-            sliding = pushes & slides[..., 0]
-            friction_direction = direction[..., 1:]
+        enter, off, slides, direction = next(settled_parts)
+        pushes = (touches & ((lam[..., 0] > 0.0) | (error[..., 0] < 0.0) | enter[..., 0])) & ~off[..., 0]
+        sliding = pushes & slides[..., 0]
+        friction_direction = direction[..., 1:]
         # A sliding point (its friction on the cone |kappa_t| = mu lambda_n, (93)) has no friction
         # rows: its friction stays mu lambda_n along s = kappa_t / |kappa_t| as lambda_n changes,
         # so its normal row pushes along J_n + mu (s_1 J_t1 + s_2 J_t2).
@@ -255,7 +270,7 @@ def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.
         total = lam + step_here  # along: +-(n, t1, t2); gap_after: linearised
         enter = touches[..., 0] & ~on[..., 0] & (gap_after[..., 0] < 0.0)
         lets_go = on[..., 0] & (total[..., 0] < 0.0)  # (C, P)
-        mu = jnp.where(slots.sliding, slots.dynamic_friction[:, None], slots.friction[:, None])
+        mu = _mu(slots)
         direction, size = math.safe_normalize(jnp.concatenate([total[..., 1:], jnp.zeros_like(total[..., :1])], -1))
         sticking = on[..., 1] & ~lets_go
         capacity = mu * jnp.maximum(total[..., 0], 0.0)
