@@ -832,10 +832,11 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         again = _ActiveSet(contact_multipliers, lam.at[:, _DRIVE].add(drive_load), saturated, settled, load, drive_load)
         return again, changed
 
-    # Both solves are one traced `taken`, in a scan of two turns: the second only where a row
-    # changed (unbatched; under vmap both run, as a select). Traced twice, the second solve took
-    # 38% of the time to compile grad of a rollout of Brax's humanoid (dbd-tree-1). With `close`,
-    # the kept solve's factors come out too, so the closing step runs once, after.
+    # Both solves are one traced `solved_with`, in a scan of two turns: the second only where a row
+    # changed (unbatched; under vmap both run, as a select). Traced as two copies, grad of a rollout
+    # of Brax's humanoid (dbd-tree-1) took 176 s to lower and compile, 160 s as one (the rollout
+    # 26 -> 22 s), its step as fast. With `close`, the kept solve's factors come out too, so the
+    # closing step runs once, after.
     def in_turn(carry, second):
         active, kept, changed = carry
 
@@ -843,7 +844,8 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
             new, solved = solved_with(active)
             if touching is not None:  # a second solve that jams gives way to the first
                 new = jax.tree.map(lambda a, b: jnp.where(second & solved.jammed, a, b), kept, new)
-            # (unbatched: nothing follows the second solve, so its active set is not worked out)
+            # After the second solve nothing follows: its active set is not worked out (the turn is
+            # not batched, so this is a branch under vmap too).
             again, changed_now = jax.lax.cond(second, lambda _: (active, changed),
                                               lambda _: active_set_after(solved, active), None)  # fmt: skip
             return again, new, changed_now
@@ -858,6 +860,7 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         load=jnp.zeros((structure.num_bodies + 1, 6), bodies.dx.dtype),
         drive_load=jnp.zeros_like(lam[:, _DRIVE]),
     )
+    # The kept solve, a placeholder until the first turn fills it (a scan's carry is shaped before it runs).
     kept = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(lambda: solved_with(first)[0]))
     (_, kept, _), _ = jax.lax.scan(in_turn, (first, kept, jnp.zeros((), bool)), jnp.arange(2) == 1)
     result, *kept_factors = kept
