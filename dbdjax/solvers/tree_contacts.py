@@ -136,6 +136,13 @@ def _point_multipliers(slots, lam: jnp.ndarray) -> jnp.ndarray:
     return lam.reshape(pairs, points, contact_family.MULTIPLIERS_PER_POINT)[..., :3]
 
 
+def _friction_direction(lam: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Of each point's multipliers (C, P, 3): its friction's direction as rows (C, P, 3), (0, s_1, s_2)
+    with s its unit direction in the plane (0 where it has none), and its size |kappa_t| (C, P)."""
+    direction, size = math.safe_normalize(jnp.concatenate([lam[..., 1:], jnp.zeros_like(lam[..., :1])], -1))
+    return jnp.concatenate([jnp.zeros_like(size)[..., None], direction[..., :2]], axis=-1), size
+
+
 def unsettled(touching: Touching) -> Settled:
     """The active set the first direct solve is taken with, before any `settle`: no point let go or
     entered, and a point slides where it was already sliding at the start of the substep and the
@@ -144,10 +151,10 @@ def unsettled(touching: Touching) -> Settled:
     slidings, directions = [], []
     for slots, lam in zip(touching.slots, touching.multipliers, strict=True):
         mu, lam = _mu(slots), _point_multipliers(slots, lam)
-        direction, size = math.safe_normalize(jnp.concatenate([lam[..., 1:], jnp.zeros_like(lam[..., :1])], -1))
+        direction, size = _friction_direction(lam)
         on_cone = (size > 0.0) & (size >= (1.0 - ON_THE_CONE) * mu * lam[..., 0])
         slidings.append(jnp.repeat((slots.sliding & on_cone)[..., None], 3, axis=-1).reshape(-1))
-        directions.append(jnp.concatenate([jnp.zeros_like(size)[..., None], direction[..., :2]], axis=-1).reshape(-1))
+        directions.append(direction.reshape(-1))
     sliding, direction = jnp.concatenate(slidings), jnp.concatenate(directions)
     false = jnp.zeros_like(sliding)
     return Settled(off=false, sliding=sliding, direction=direction, enter=false,
@@ -163,8 +170,9 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
     on, sliding points have no friction rows; every other point that pushes sticks."""
     parts = []
     mass = with_world_row(model.bodies.mass)
-    fields = (settled.enter, settled.off, settled.sliding, settled.direction)  # per group, per point (each
-    settled_parts = zip(*(_grouped(x, touching) for x in fields), strict=True)  # point's three rows share these)
+    # per group, per point (each point's three rows share these)
+    fields = (settled.enter, settled.off, settled.sliding, settled.direction)
+    settled_parts = zip(*(_grouped(x, touching) for x in fields), strict=True)
     for group, slots, lam in zip(model.structure.contact_groups, touching.slots, touching.multipliers, strict=True):
         moving, b_moves, usable = _sides(model, group, tree_bodies)
         mu, lam = _mu(slots), _point_multipliers(slots, lam)
@@ -271,7 +279,7 @@ def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.
         enter = touches[..., 0] & ~on[..., 0] & (gap_after[..., 0] < 0.0)
         lets_go = on[..., 0] & (total[..., 0] < 0.0)  # (C, P)
         mu = _mu(slots)
-        direction, size = math.safe_normalize(jnp.concatenate([total[..., 1:], jnp.zeros_like(total[..., :1])], -1))
+        direction, size = _friction_direction(total)  # direction (0, s_1, s_2)
         sticking = on[..., 1] & ~lets_go
         capacity = mu * jnp.maximum(total[..., 0], 0.0)
         # Each point within its own cone, and each pair within the sum of its points' cones: a body
@@ -284,13 +292,13 @@ def settle(touching: Touching, rows: ContactRows, steps: jnp.ndarray, step: jnp.
         pair_slides = math.safe_norm(world_friction) > jnp.sum(jnp.where(sticking, capacity, 0.0), axis=-1)  # (C,)
         slides = sticking & ((size > capacity) | pair_slides[:, None])
         slid = on[..., 0] & ~on[..., 1] & ~lets_go  # sliding in this solve already: stays so
-        friction = mu[..., None] * lam[..., :1] * direction[..., :2] - lam[..., 1:]
+        friction = mu[..., None] * lam[..., :1] * direction[..., 1:] - lam[..., 1:]
         load = jnp.where(lets_go[..., None], -lam, 0.0)
         load = load.at[..., 1:].add(jnp.where(slides[..., None], friction, 0.0))
         loads.append(load.reshape(-1))
         offs.append(jnp.repeat(lets_go[..., None], 3, axis=-1).reshape(-1))
         slidings.append(jnp.repeat((slides | slid)[..., None], 3, axis=-1).reshape(-1))
-        directions.append(jnp.concatenate([jnp.zeros_like(size)[..., None], direction[..., :2]], axis=-1).reshape(-1))
+        directions.append(direction.reshape(-1))
         enters.append(jnp.repeat(enter[..., None], 3, axis=-1).reshape(-1))
         changed = changed | jnp.any(lets_go) | jnp.any(slides) | jnp.any(enter)
     off, sliding, direction, load, enter = (jnp.concatenate(x) for x in (offs, slidings, directions, loads, enters))
