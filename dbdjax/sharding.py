@@ -15,10 +15,11 @@ four host devices to try it; across machines, `jax.distributed.initialize()` fir
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -65,3 +66,19 @@ def varying_like(tree: Any, *references: Any) -> Any:
         return jax.lax.pcast(leaf, missing, to="varying") if missing else leaf
 
     return jax.tree.map(cast, tree)
+
+
+def cond(predicate: jax.Array, true_fun: Callable, false_fun: Callable, *operands: Any) -> Any:
+    """`jax.lax.cond(predicate, true_fun, false_fun, *operands)`, except where the predicate varies
+    over a `jax.shard_map` axis: there both run and their results are selected (what `jax.vmap` makes
+    of a cond whose predicate is batched in any case).
+
+    Why: under shard_map's varying-axes checks, vmap of a cond whose predicate is batched fails in JAX
+    0.10 ("Primitive add requires varying manual axes to match"): the batching rule selects the
+    branches' operands with the now varying predicate, and the branches' constants (index arrays
+    closed over) then meet their unvarying literals. Outside shard_map, or with its checks off, this
+    is `lax.cond`: a real branch where the predicate is not batched."""
+    if not jax.typeof(predicate).mat.varying:
+        return jax.lax.cond(predicate, true_fun, false_fun, *operands)
+    taken, other = true_fun(*operands), false_fun(*operands)
+    return jax.tree.map(lambda a, b: jnp.where(predicate, a, b), taken, other)

@@ -44,26 +44,53 @@ SHARD_MAP = textwrap.dedent(
     from pathlib import Path
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import PartitionSpec as P
+    import sys
     import dbdjax as dbd
 
     assert len(jax.devices()) == 2, jax.devices()
     mesh = jax.make_mesh((2,), ("b",), axis_types=(jax.sharding.AxisType.Auto,))
-    mapped = lambda f: jax.jit(jax.shard_map(f, mesh=mesh, in_specs=P("b"), out_specs=P("b")))  # check_vma on
-    for solver in ("dbd", "impulse"):
-        # Brax's ant: contacts (sweeps and restitution), armature (the rotor pass), actuators, two
-        # substeps (the pipeline's scan); each copy with its own controls
-        model = dbd.load_mjcf(Path("tests/assets/ant.xml"), substeps=2, iterations=2, solver=solver)
+    # check_vma on; compiled as the benchmarks and trainers do (dbd.jit: dbd.compiler_options())
+    mapped = lambda f: dbd.jit(jax.shard_map(f, mesh=mesh, in_specs=P("b"), out_specs=P("b")))
+    settings = {"dbd": {"solver": "dbd"}, "impulse": {"solver": "impulse"},
+                "tree": {"solver": "dbd", "tree_solve": True, "iterations": 1}}  # one sweep, then the direct solves
+    for solver in sys.argv[1:]:
+        # Brax's ant: contacts (sweeps and restitution; the tree solve's active-set step), armature
+        # (the rotor pass), actuators, two substeps (the pipeline's scan); each copy with its own controls
+        options = {"iterations": 2, **settings[solver]}
+        model = dbd.load_mjcf(Path("tests/assets/ant.xml"), substeps=2, **options)
         low, high = np.asarray(model.control_range).T
         controls = jnp.asarray(low + np.random.default_rng(0).uniform(size=(4, model.num_controls)) * (high - low),
                                jnp.float32)
         states = jax.tree.map(lambda x: jnp.broadcast_to(x, (4,) + x.shape), dbd.init(model))
         functions = {"step": jax.vmap(lambda c, s: dbd.step(model, s, c).pos)}
-        if solver == "dbd":
+        if solver != "impulse":
             functions["grad"] = jax.vmap(jax.grad(lambda c, s: jnp.sum(dbd.step(model, s, c).pos[:, 2])))
         for name, function in functions.items():
-            one_device = np.asarray(jax.jit(function)(controls, states))
+            one_device = np.asarray(dbd.jit(function)(controls, states))
             difference = np.max(np.abs(np.asarray(mapped(function)(controls, states)) - one_device))
             print(f"{solver}_{name}", f"{difference / np.max(np.abs(one_device)):.3g}")  # relative
+    """
+)
+
+COND = textwrap.dedent(
+    """
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import PartitionSpec as P
+    from dbdjax import sharding
+
+    mesh = jax.make_mesh((2,), ("b",), axis_types=(jax.sharding.AxisType.Auto,))
+    order = np.array([2, 0, 1])  # an index array the branch closes over, as the tree solve's do
+
+    def update(x):  # a branch on each copy's own value: batched by vmap
+        return sharding.cond(x[0] > 3.0, lambda v: v, lambda v: v[order] * 2.0, x)
+
+    x = jnp.arange(12.0).reshape(4, 3)
+    expected = np.where(np.asarray(x[:, :1]) > 3.0, np.asarray(x), np.asarray(x)[:, order] * 2.0)
+    mapped = jax.jit(jax.shard_map(jax.vmap(update), mesh=mesh, in_specs=P("b"), out_specs=P("b")))
+    print("shard_map_vmap", float(np.max(np.abs(np.asarray(mapped(x)) - expected))))
+    print("vmap", float(np.max(np.abs(np.asarray(jax.jit(jax.vmap(update))(x)) - expected))))
+    primitives = {e.primitive.name for e in jax.make_jaxpr(update)(x[0]).eqns}
+    print("branch", "cond" in primitives)  # outside shard_map, unbatched: still a branch
     """
 )
 
@@ -104,14 +131,19 @@ TRAINERS = textwrap.dedent(
 )
 
 
-def run_script(script: str, environment: dict[str, str]) -> dict[str, str]:
-    """Run `script` in a fresh Python with `environment` (tests/ and the repo on the path); its
-    printed lines "name value" as a dict."""
+def run_script(script: str, environment: dict[str, str], *arguments: str, timeout: float = 600) -> dict[str, str]:
+    """Run `script` in a fresh Python with `environment` (tests/ and the repo on the path) and
+    command-line `arguments`, for at most `timeout` s; its printed lines "name value" as a dict."""
     tests = Path(__file__).parent
     environment = dict(environment, JAX_PLATFORMS="cpu")
     environment["PYTHONPATH"] = os.pathsep.join([str(tests), str(tests.parent), environment.get("PYTHONPATH", "")])
     result = subprocess.run(
-        [sys.executable, "-c", script], env=environment, capture_output=True, text=True, timeout=600, check=False
+        [sys.executable, "-c", script, *arguments],
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     return dict(line.split(" ", 1) for line in result.stdout.strip().splitlines())
@@ -125,15 +157,36 @@ def test_batched_rollout_sharded_over_four_cpu_devices_matches_one_device():
     assert lines["uneven"] == "True"  # a batch of 6 over 4 devices is refused with a clear error
 
 
+def test_a_branch_on_each_copy_runs_under_shard_map_and_vmap():
+    """`sharding.cond` on a batched predicate under `jax.shard_map` (its checks on) and `jax.vmap`:
+    each copy takes its own branch; lax.cond there fails in JAX 0.10's batching rule."""
+    lines = run_script(COND, dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
+    assert float(lines["shard_map_vmap"]) == 0.0
+    assert float(lines["vmap"]) == 0.0
+    assert lines["branch"] == "True"
+
+
 @pytest.mark.slow  # 205 s: under shard_map the products take their written-out components (math._unsharded)
 def test_step_and_its_gradient_run_under_shard_map_with_its_type_checks():
     """`jax.shard_map` (its varying-axes checks on, as by default) over a batch of Brax's ant: the
     step with both solvers and the DBD step's gradient. The scans' carries that start as
     constants are made varying (`sharding.varying_like`); the results are those of one device."""
-    lines = run_script(SHARD_MAP, dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
+    lines = run_script(SHARD_MAP, dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2"),
+                       "dbd", "impulse")  # fmt: skip
     # float32 rounding, relative to the largest value: the steps within 1e-5 (measured 7.9e-8), the
     # gradient, whose reverse pass sums more terms, within 1e-4 (measured 2.3e-5 of its ~2e-5 entries)
     for name, bound in (("dbd_step", 1e-5), ("impulse_step", 1e-5), ("dbd_grad", 1e-4)):
+        assert float(lines[name]) < bound, (name, lines[name])
+
+
+@pytest.mark.slow  # SECONDS s
+def test_the_tree_solve_and_its_gradient_run_under_shard_map_with_its_type_checks():
+    """The same with `tree_solve` at one sweep: its active-set step's second solve, a branch on
+    whether the first changed a row, is a select where that varies over a mesh axis
+    (`sharding.cond`); the results are those of one device."""
+    environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    lines = run_script(SHARD_MAP, environment, "tree", timeout=1800)  # its gradient compiles for minutes
+    for name, bound in (("tree_step", 1e-5), ("tree_grad", 1e-4)):  # as above; measured MEASURED
         assert float(lines[name]) < bound, (name, lines[name])
 
 

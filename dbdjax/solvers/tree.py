@@ -833,10 +833,10 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         return again, changed
 
     # Both solves are one traced `solved_with`, in a scan of two turns: the second only where a row
-    # changed (unbatched; under vmap both run, as a select). Traced as two copies, grad of a rollout
-    # of Brax's humanoid (dbd-tree-1) took 176 s to lower and compile, 160 s as one (the rollout
-    # 26 -> 22 s), its step as fast. With `close`, the kept solve's factors come out too, so the
-    # closing step runs once, after.
+    # changed (unbatched; under vmap both run, as a select, which under shard_map `sharding.cond`
+    # writes out). Traced as two copies, grad of a rollout of Brax's humanoid (dbd-tree-1) took 176 s
+    # to lower and compile, 160 s as one (the rollout 26 -> 22 s), its step as fast. With `close`,
+    # the kept solve's factors come out too, so the closing step runs once, after.
     def in_turn(carry, second):
         active, kept, changed = carry
 
@@ -850,7 +850,7 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
                                               lambda _: active_set_after(solved, active), None)  # fmt: skip
             return again, new, changed_now
 
-        return jax.lax.cond(second & ~changed, lambda _: carry, take, None), None
+        return sharding.cond(second & ~changed, lambda _: carry, take, None), None
 
     first = _ActiveSet(
         contact_multipliers=() if touching is None else touching.multipliers,
@@ -862,7 +862,8 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
     )
     # The kept solve, a placeholder until the first turn fills it (a scan's carry is shaped before it runs).
     kept = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(lambda: solved_with(first)[0]))
-    (_, kept, _), _ = jax.lax.scan(in_turn, (first, kept, jnp.zeros((), bool)), jnp.arange(2) == 1)
+    start = sharding.varying_like((first, kept, jnp.zeros((), bool)), bodies, lam, touching, targets)  # (shard_map)
+    (_, kept, _), _ = jax.lax.scan(in_turn, start, jnp.arange(2) == 1)
     result, *kept_factors = kept
     if not close:
         return result
