@@ -77,7 +77,8 @@ def cond(predicate: jax.Array, true_fun: Callable, false_fun: Callable, *operand
     0.10 ("Primitive add requires varying manual axes to match"): the batching rule selects the
     branches' operands with the now varying predicate, and the branches' constants (index arrays
     closed over) then meet their unvarying literals. Outside shard_map, or with its checks off, this
-    is `lax.cond`: a real branch where the predicate is not batched."""
+    is `lax.cond`: a real branch where the predicate is not batched. In the select the branch not
+    taken is differentiated too, with a zero cotangent: both branches must stay finite."""
     if not jax.typeof(predicate).mat.varying:
         return jax.lax.cond(predicate, true_fun, false_fun, *operands)
     taken, other = true_fun(*operands), false_fun(*operands)

@@ -179,14 +179,14 @@ def test_step_and_its_gradient_run_under_shard_map_with_its_type_checks():
         assert float(lines[name]) < bound, (name, lines[name])
 
 
-@pytest.mark.slow  # SECONDS s
+@pytest.mark.slow  # 514 s: the tree's gradient compiles for minutes, on one device and under shard_map
 def test_the_tree_solve_and_its_gradient_run_under_shard_map_with_its_type_checks():
     """The same with `tree_solve` at one sweep: its active-set step's second solve, a branch on
     whether the first changed a row, is a select where that varies over a mesh axis
     (`sharding.cond`); the results are those of one device."""
     environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     lines = run_script(SHARD_MAP, environment, "tree", timeout=1800)  # its gradient compiles for minutes
-    for name, bound in (("tree_step", 1e-5), ("tree_grad", 1e-4)):  # as above; measured MEASURED
+    for name, bound in (("tree_step", 1e-5), ("tree_grad", 1e-4)):  # as above; measured 1.6e-7 and 5.6e-6
         assert float(lines[name]) < bound, (name, lines[name])
 
 
