@@ -342,8 +342,8 @@ def mujoco_rest(xml: Path, longest: float = 120.0) -> dict:
 
 def gradient_cost(engine: Engine, horizon: int, remat: bool, repeats: int = 5) -> dict:
     """Time of one grad of the final height w.r.t. the controls through `horizon` steps (the best of
-    `repeats` calls after a warm one: a single call of DBD's humanoid took 0.70 s in run 54 against
-    a best of 0.33 s), and the compiled program's temporary memory (XLA's memory analysis:
+    `repeats` calls after a warm one: a single call of DBD's humanoid took 0.70 s in run 54, a
+    probe's best of 7 0.33 s), and the compiled program's temporary memory (XLA's memory analysis:
     deterministic, unlike RSS)."""
     step = engine.step_remat if remat else engine.step
     if step is None:

@@ -166,7 +166,8 @@ def test_a_branch_on_each_copy_runs_under_shard_map_and_vmap():
     assert lines["branch"] == "True"
 
 
-@pytest.mark.slow  # 205 s: under shard_map the products take their written-out components (math._unsharded)
+@pytest.mark.slow  # 205 s (compiled with jax.jit's defaults until session 64): under shard_map the
+# products take their written-out components (math._unsharded)
 def test_step_and_its_gradient_run_under_shard_map_with_its_type_checks():
     """`jax.shard_map` (its varying-axes checks on, as by default) over a batch of Brax's ant: the
     step with both solvers and the DBD step's gradient. The scans' carries that start as
@@ -174,7 +175,8 @@ def test_step_and_its_gradient_run_under_shard_map_with_its_type_checks():
     lines = run_script(SHARD_MAP, dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2"),
                        "dbd", "impulse")  # fmt: skip
     # float32 rounding, relative to the largest value: the steps within 1e-5 (measured 7.9e-8), the
-    # gradient, whose reverse pass sums more terms, within 1e-4 (measured 2.3e-5 of its ~2e-5 entries)
+    # gradient, whose reverse pass sums more terms, within 1e-4 (measured 2.3e-5 of its ~2e-5
+    # entries; both with jax.jit's defaults)
     for name, bound in (("dbd_step", 1e-5), ("impulse_step", 1e-5), ("dbd_grad", 1e-4)):
         assert float(lines[name]) < bound, (name, lines[name])
 
