@@ -52,12 +52,16 @@ def _times(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
     return jnp.sum(matrix * vector[..., None, :], axis=-1)
 
 
-def matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+def matmul(a: jnp.ndarray, b: jnp.ndarray, transpose_a: bool = False, transpose_b: bool = False) -> jnp.ndarray:
     """a (..., n, k) @ b (..., k, m) as k broadcast products summed: no dot op, which costs XLA:CPU far
-    more to compile and to run on 3 x 3 matrices than these multiplications, which fuse."""
-    total = a[..., :, 0, None] * b[..., None, 0, :]
-    for k in range(1, a.shape[-1]):
-        total = total + a[..., :, k, None] * b[..., None, k, :]
+    more to compile and to run on 3 x 3 matrices than these multiplications, which fuse.
+    transpose_a: a is (..., k, n) and a^T is taken; transpose_b: b is (..., m, k) and b^T is taken
+    (read by slicing the other axis: a transposed operand would be one more kernel on CPU)."""
+    column = (lambda k: a[..., k, :, None]) if transpose_a else (lambda k: a[..., :, k, None])
+    row = (lambda k: b[..., None, :, k]) if transpose_b else (lambda k: b[..., None, k, :])
+    total = column(0) * row(0)
+    for k in range(1, a.shape[-2] if transpose_a else a.shape[-1]):
+        total = total + column(k) * row(k)
     return total
 
 
@@ -498,12 +502,20 @@ def gauss_jordan_inverse(matrix: jnp.ndarray) -> jnp.ndarray:
     one, 1.02-1.19x (`benchmarks/results/profile_step_paired_session61_tree_inverse.json`).
     """
     n = matrix.shape[-1]
-    augmented = jnp.concatenate([matrix, jnp.broadcast_to(jnp.eye(n, dtype=matrix.dtype), matrix.shape)], axis=-1)
+    # In place: step k turns column k of [A | 1] into e_k and column k of its right half from e_k
+    # into the inverse's column k, so one n x n array holds both halves' live columns (half the
+    # arithmetic and memory of the augmented n x 2n, the same operations on each entry, so the same
+    # result to the bit): column k holds the left half's before step k, the inverse's after.
+    is_pivot = np.arange(n) == np.arange(n)[:, None]  # (k, column): column == k
+    inverse = matrix
     for k in range(n):
-        pivot_row = augmented[..., k, :] / augmented[..., k, k, None]
-        augmented = augmented - augmented[..., :, k, None] * pivot_row[..., None, :]
-        augmented = augmented.at[..., k, :].set(pivot_row)
-    return augmented[..., n:]
+        pivot = inverse[..., k, k, None]
+        # Row k divided by the pivot; in column k, the right half's 1 divided by it.
+        pivot_row = jnp.where(is_pivot[k], 1.0 / pivot, inverse[..., k, :] / pivot)
+        # The other rows less their column-k entry times it; column k's left half becomes 0 first.
+        eliminated = jnp.where(is_pivot[k], 0.0, inverse) - inverse[..., :, k, None] * pivot_row[..., None, :]
+        inverse = jnp.where(is_pivot[k][:, None], pivot_row[..., None, :], eliminated)
+    return inverse
 
 
 def adjugate3(matrix: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:

@@ -333,6 +333,17 @@ def test_gauss_jordan_inverse_error_stays_within_condition_times_roundoff(size):
     assert ours.max() < 1e6 * np.finfo(np.float32).eps / 2
 
 
+@pytest.mark.parametrize("transpose_a", [False, True])
+@pytest.mark.parametrize("transpose_b", [False, True])
+def test_matmul_takes_either_operand_transposed(float64, transpose_a, transpose_b):
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(5, 4, 3)), rng.normal(size=(5, 3, 6))  # (n, k) @ (k, m): 4 x 3 @ 3 x 6
+    a_in = np.swapaxes(a, -1, -2) if transpose_a else a
+    b_in = np.swapaxes(b, -1, -2) if transpose_b else b
+    ours = math.matmul(jnp.asarray(a_in), jnp.asarray(b_in), transpose_a=transpose_a, transpose_b=transpose_b)
+    np.testing.assert_allclose(np.asarray(ours), a @ b, rtol=1e-13, atol=1e-13)
+
+
 def test_gauss_jordan_inverse_is_exact_in_float64(float64):
     rng = np.random.default_rng(0)
     rotation, _ = np.linalg.qr(rng.normal(size=(4, 9, 9)))

@@ -157,8 +157,12 @@ def _mv(a: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
     return total
 
 
-def _transpose(a: jnp.ndarray) -> jnp.ndarray:
-    return jnp.swapaxes(a, -1, -2)
+def _transposed_mv(a: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
+    """a (..., k, n) transposed times v (..., k) as k broadcast products (no transposed copy of a)."""
+    total = a[..., 0, :] * v[..., 0, None]
+    for k in range(1, a.shape[-2]):
+        total = total + a[..., k, :] * v[..., k, None]
+    return total
 
 
 def _point_jacobian(sign: np.ndarray, arm: jnp.ndarray) -> jnp.ndarray:
@@ -442,7 +446,38 @@ class Factors(NamedTuple):
     joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
     empty: np.ndarray  # (L, W) bool
     matrices: jnp.ndarray  # (L, W, R, 13) [J_child | J_parent | alpha], R = 3 point rows (+ K angular rows)
-    inverses: jnp.ndarray  # (L, W, max(6, R), 6 + R) [D_b^-1 | S_j^-1], each in its top rows
+    # (L, W, max(6, R), 2 (6 + R)) [D_b^-1 | S_j^-1 | J_child D_b^-1 | J_parent^T S_j^-1], each in
+    # its top rows: the two products too, which `factor` forms anyway and every solve's elimination reads.
+    inverses: jnp.ndarray
+
+
+def _inverses(inverse: jnp.ndarray, rows: int) -> tuple[jnp.ndarray, ...]:
+    """(D_b^-1 (..., 6, 6), S_j^-1 (..., R, R), J_child D_b^-1 (..., R, 6), J_parent^T S_j^-1 (..., 6, R))
+    of slots' packed `Factors.inverses` (..., max(6, R), 2 (6 + R))."""
+    return (inverse[..., :6, :6], inverse[..., :rows, 6 : 6 + rows], inverse[..., :rows, 6 + rows : 12 + rows],
+            inverse[..., :6, 12 + rows :])  # fmt: skip
+
+
+def _at_bodies(indices: np.ndarray, num_bodies: int) -> np.ndarray:
+    """(L, W, 2, N + 1) bool: each slot's child and parent body as a mask over the bodies (the world,
+    row N, in none), for the levels' scans to add and write per-slot rows to their bodies with
+    selects: a scatter at indices the scan hands each level is one slow kernel per batch member."""
+    return (indices[..., None] == np.arange(num_bodies + 1)) & (indices[..., None] != num_bodies)
+
+
+def _added_to(rows: jnp.ndarray, at: jnp.ndarray, values: jnp.ndarray) -> jnp.ndarray:
+    """rows (N + 1, ...) plus each slot's values (W, ...) on the row its mask at (W, N + 1) bool picks,
+    slot after slot (as a scatter-add would)."""
+    for w in range(len(values)):
+        rows = rows + jnp.where(at[w].reshape((-1,) + (1,) * (rows.ndim - 1)), values[w], 0.0)
+    return rows
+
+
+def _written_to(rows: jnp.ndarray, at: jnp.ndarray, values: jnp.ndarray) -> jnp.ndarray:
+    """rows (N + 1, ...) with each slot's values (W, ...) on the row its mask at (W, N + 1) bool picks."""
+    for w in range(len(values)):
+        rows = jnp.where(at[w].reshape((-1,) + (1,) * (rows.ndim - 1)), values[w], rows)
+    return rows
 
 
 class _Slots(NamedTuple):
@@ -523,17 +558,21 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         return jnp.concatenate([matrix, jnp.zeros((len(matrix), height - matrix.shape[1], matrix.shape[2]), dtype)], 1)
 
     def eliminate(carry, level):
-        index, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
+        index, at, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
         jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12]
         # Both positive definite up to a skew part (a velocity-dependent inertia, a sliding contact's
         # tilted row): a body's M~ plus what its children add, a joint's rows' effective inverse
         # mass plus their compliance.
         d_inv = math.gauss_jordan_inverse(carry[index[:, 0]])
-        s_inv = math.gauss_jordan_inverse(alpha[:, :, None] * eye + math.matmul(math.matmul(jc, d_inv), _transpose(jc)))
-        carry = carry.at[index[:, 1]].add(math.matmul(math.matmul(_transpose(jp), s_inv), jp))
-        return carry, jnp.concatenate([padded(d_inv), padded(s_inv)], axis=-1)  # (W, max(6, R), 6 + R)
+        child_products = math.matmul(jc, d_inv)
+        s_inv = math.gauss_jordan_inverse(alpha[:, :, None] * eye + math.matmul(child_products, jc, transpose_b=True))
+        parent_products = math.matmul(jp, s_inv, transpose_a=True)
+        carry = _added_to(carry, at[:, 1], math.matmul(parent_products, jp))
+        packed = [padded(d_inv), padded(s_inv), padded(child_products), padded(parent_products)]
+        return carry, jnp.concatenate(packed, axis=-1)  # (W, max(6, R), 2 (6 + R))
 
-    _, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), (indices, matrices))
+    levels = (indices, _at_bodies(indices, world), matrices)
+    _, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), levels)
     return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
 
 
@@ -544,8 +583,12 @@ def _slot_rows(factors: Factors, rows: jnp.ndarray) -> jnp.ndarray:
 
 def _joint_rows(factors: Factors, slots: jnp.ndarray, num_joints: int) -> jnp.ndarray:
     """(J, R) a per-slot row array (L, W, R) gathered back to the joints (0 outside the tree)."""
-    tree_joint = np.where(factors.empty, num_joints, factors.joint)
-    return jnp.zeros((num_joints + 1,) + slots.shape[2:], slots.dtype).at[tree_joint].add(slots)[:num_joints]
+    slot = np.zeros(num_joints, np.int32)  # each joint's slot, flattened
+    in_tree = np.zeros(num_joints, bool)
+    real = np.flatnonzero(~factors.empty.reshape(-1))
+    slot[factors.joint.reshape(-1)[real]], in_tree[factors.joint.reshape(-1)[real]] = real, True
+    gathered = slots.reshape((-1,) + slots.shape[2:])[slot]
+    return jnp.where(in_tree.reshape((-1,) + (1,) * (gathered.ndim - 1)), gathered, 0.0)
 
 
 def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.ndarray
@@ -555,28 +598,29 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
     (N + 1, 6) and each slot's multiplier step (L, W, R)."""
     rows = factors.matrices.shape[-2]
 
+    at_bodies = _at_bodies(factors.indices, len(start) - 1)
+
     def eliminate(z, level):
-        index, packed, inverse, c = level  # z: (N + 1, 6), what the children added so far
-        jc, jp = packed[..., :6], packed[..., 6:12]
-        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
+        index, at, inverse, c = level  # z: (N + 1, 6), what the children added so far
+        _, _, child_products, parent_products = _inverses(inverse, rows)
         z_body = z[index[:, 0]]
-        z_joint = -c - _mv(math.matmul(jc, d_inv), z_body)
-        z = z.at[index[:, 1]].add(_mv(math.matmul(_transpose(jp), s_inv), z_joint))
+        z_joint = -c - _mv(child_products, z_body)
+        z = _added_to(z, at[:, 1], _mv(parent_products, z_joint))
         return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
-    levels = (factors.indices, factors.matrices, factors.inverses, gap)
-    _, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[1:]), levels)
+    levels = (factors.indices, at_bodies, factors.inverses, gap)
+    _, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[2:]), levels)
 
     def substitute(x, level):
-        index, packed, inverse, z = level
+        index, at, packed, inverse, z = level
         jc, jp = packed[..., :6], packed[..., 6:12]
-        d_inv, s_inv = inverse[:, :6, :6], inverse[:, :rows, 6:]
+        d_inv, s_inv, _, _ = _inverses(inverse, rows)
         kappa = _mv(s_inv, z[:, 6:] - _mv(jp, x[index[:, 1]]))
-        x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _mv(_transpose(jc), kappa)))
+        x = _written_to(x, at[:, 0], _mv(d_inv, z[:, :6] + _transposed_mv(jc, kappa)))
         return x, kappa
 
-    levels = (factors.indices, factors.matrices, factors.inverses, right)
-    return jax.lax.scan(substitute, sharding.varying_like(jnp.zeros_like(start), levels[1:]), levels, reverse=True)
+    levels = (factors.indices, at_bodies, factors.matrices, factors.inverses, right)
+    return jax.lax.scan(substitute, sharding.varying_like(jnp.zeros_like(start), levels[2:]), levels, reverse=True)
 
 
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
