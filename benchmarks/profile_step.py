@@ -23,6 +23,8 @@ average and its CPU-time ratio (before / after), so that a ratio can be told fro
 child processes, then time N rollout calls each, one after the other in alternating order, so
 that each pair of calls meets the same load; recorded: every pair's CPU times, the median of the
 pairs' ratios and the ratio of the two minima. On a loaded machine this is the steadiest ratio.
+With --compiler-options both compile with `dbd.jit` (dbdjax's XLA options, as brax_comparison.py
+does) instead of jax.jit's defaults: a change can run faster under one and slower under the other.
 The settings are brax_comparison.py's (--solver: dbdjax's solver, dbd by default; dbd-tree: DBD
 with tree_solve; dbd-tree-1: the same at one sweep): 1 substep, 4 iterations (1 for dbd-tree-1),
 float32, uniform random controls in the actuators' ctrlrange, the XML's dt. Times: the best of
@@ -190,7 +192,13 @@ def serve(args) -> None:
         controls = _controls(control_range, (HORIZON, batch))
         batched = jax.tree.map(lambda x, b=batch: jnp.broadcast_to(x, (b,) + x.shape), state)
         one = jax.vmap(step)
-        compiled = jax.jit(lambda s, cs, one=one: jax.lax.scan(lambda s, c: (one(s, c), None), s, cs)[0])
+        rollout = lambda s, cs, one=one: jax.lax.scan(lambda s, c: (one(s, c), None), s, cs)[0]  # noqa: E731
+        if args.compiler_options:  # what brax_comparison.py compiles with (`dbd.jit`)
+            import dbdjax as dbd
+
+            compiled = dbd.jit(rollout)
+        else:
+            compiled = jax.jit(rollout)
         compiled = compiled.lower(batched, controls).compile()
         jax.block_until_ready(compiled(batched, controls))
         calls.append((compiled, batched, controls))
@@ -206,6 +214,7 @@ def paired(baseline: str, here: str, model: str, args) -> dict:
     """--paired: N alternating timed calls of the baseline's and this checkout's rollouts."""
     command = [sys.executable, __file__, "--serve", "--model", model, "--solver", args.solver,
                "--batches", *map(str, args.batches)]  # fmt: skip
+    command += ["--compiler-options"] if args.compiler_options else []
     servers = [
         subprocess.Popen(
             command, env=dict(os.environ, PYTHONPATH=path), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
@@ -300,6 +309,9 @@ def main() -> None:
     parser.add_argument("--kind", help=argparse.SUPPRESS)
     parser.add_argument("--hlo", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--paired", type=int, default=0, help="N alternating timed calls (with --baseline)")
+    parser.add_argument("--compiler-options", action="store_true",
+                        help="--paired: compile with dbd.jit (dbdjax's XLA options, as brax_comparison.py) "
+                             "instead of jax.jit's defaults")  # fmt: skip
     parser.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.parts and args.solver != "dbd":

@@ -502,20 +502,12 @@ def gauss_jordan_inverse(matrix: jnp.ndarray) -> jnp.ndarray:
     one, 1.02-1.19x (`benchmarks/results/profile_step_paired_session61_tree_inverse.json`).
     """
     n = matrix.shape[-1]
-    # In place: step k turns column k of [A | 1] into e_k and column k of its right half from e_k
-    # into the inverse's column k, so one n x n array holds both halves' live columns (half the
-    # arithmetic and memory of the augmented n x 2n, the same operations on each entry, so the same
-    # result to the bit): column k holds the left half's before step k, the inverse's after.
-    is_pivot = np.arange(n) == np.arange(n)[:, None]  # (k, column): column == k
-    inverse = matrix
+    augmented = jnp.concatenate([matrix, jnp.broadcast_to(jnp.eye(n, dtype=matrix.dtype), matrix.shape)], axis=-1)
     for k in range(n):
-        pivot = inverse[..., k, k, None]
-        # Row k divided by the pivot; in column k, the right half's 1 divided by it.
-        pivot_row = jnp.where(is_pivot[k], 1.0 / pivot, inverse[..., k, :] / pivot)
-        # The other rows less their column-k entry times it; column k's left half becomes 0 first.
-        eliminated = jnp.where(is_pivot[k], 0.0, inverse) - inverse[..., :, k, None] * pivot_row[..., None, :]
-        inverse = jnp.where(is_pivot[k][:, None], pivot_row[..., None, :], eliminated)
-    return inverse
+        pivot_row = augmented[..., k, :] / augmented[..., k, k, None]
+        augmented = augmented - augmented[..., :, k, None] * pivot_row[..., None, :]
+        augmented = augmented.at[..., k, :].set(pivot_row)
+    return augmented[..., n:]
 
 
 def adjugate3(matrix: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:

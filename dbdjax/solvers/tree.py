@@ -458,28 +458,6 @@ def _inverses(inverse: jnp.ndarray, rows: int) -> tuple[jnp.ndarray, ...]:
             inverse[..., :6, 12 + rows :])  # fmt: skip
 
 
-def _at_bodies(indices: np.ndarray, num_bodies: int) -> np.ndarray:
-    """(L, W, 2, N + 1) bool: each slot's child and parent body as a mask over the bodies (the world,
-    row N, in none), for the levels' scans to add and write per-slot rows to their bodies with
-    selects: a scatter at indices the scan hands each level is one slow kernel per batch member."""
-    return (indices[..., None] == np.arange(num_bodies + 1)) & (indices[..., None] != num_bodies)
-
-
-def _added_to(rows: jnp.ndarray, at: jnp.ndarray, values: jnp.ndarray) -> jnp.ndarray:
-    """rows (N + 1, ...) plus each slot's values (W, ...) on the row its mask at (W, N + 1) bool picks,
-    slot after slot (as a scatter-add would)."""
-    for w in range(len(values)):
-        rows = rows + jnp.where(at[w].reshape((-1,) + (1,) * (rows.ndim - 1)), values[w], 0.0)
-    return rows
-
-
-def _written_to(rows: jnp.ndarray, at: jnp.ndarray, values: jnp.ndarray) -> jnp.ndarray:
-    """rows (N + 1, ...) with each slot's values (W, ...) on the row its mask at (W, N + 1) bool picks."""
-    for w in range(len(values)):
-        rows = jnp.where(at[w].reshape((-1,) + (1,) * (rows.ndim - 1)), values[w], rows)
-    return rows
-
-
 class _Slots(NamedTuple):
     """The level slots' layout (`Factors`' first fields)."""
 
@@ -558,7 +536,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         return jnp.concatenate([matrix, jnp.zeros((len(matrix), height - matrix.shape[1], matrix.shape[2]), dtype)], 1)
 
     def eliminate(carry, level):
-        index, at, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
+        index, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
         jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12]
         # Both positive definite up to a skew part (a velocity-dependent inertia, a sliding contact's
         # tilted row): a body's M~ plus what its children add, a joint's rows' effective inverse
@@ -567,12 +545,11 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         child_products = math.matmul(jc, d_inv)
         s_inv = math.gauss_jordan_inverse(alpha[:, :, None] * eye + math.matmul(child_products, jc, transpose_b=True))
         parent_products = math.matmul(jp, s_inv, transpose_a=True)
-        carry = _added_to(carry, at[:, 1], math.matmul(parent_products, jp))
+        carry = carry.at[index[:, 1]].add(math.matmul(parent_products, jp))
         packed = [padded(d_inv), padded(s_inv), padded(child_products), padded(parent_products)]
         return carry, jnp.concatenate(packed, axis=-1)  # (W, max(6, R), 2 (6 + R))
 
-    levels = (indices, _at_bodies(indices, world), matrices)
-    _, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), levels)
+    _, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), (indices, matrices))
     return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
 
 
@@ -598,29 +575,27 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
     (N + 1, 6) and each slot's multiplier step (L, W, R)."""
     rows = factors.matrices.shape[-2]
 
-    at_bodies = _at_bodies(factors.indices, len(start) - 1)
-
     def eliminate(z, level):
-        index, at, inverse, c = level  # z: (N + 1, 6), what the children added so far
+        index, inverse, c = level  # z: (N + 1, 6), what the children added so far
         _, _, child_products, parent_products = _inverses(inverse, rows)
         z_body = z[index[:, 0]]
         z_joint = -c - _mv(child_products, z_body)
-        z = _added_to(z, at[:, 1], _mv(parent_products, z_joint))
+        z = z.at[index[:, 1]].add(_mv(parent_products, z_joint))
         return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
-    levels = (factors.indices, at_bodies, factors.inverses, gap)
-    _, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[2:]), levels)
+    levels = (factors.indices, factors.inverses, gap)
+    _, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[1:]), levels)
 
     def substitute(x, level):
-        index, at, packed, inverse, z = level
+        index, packed, inverse, z = level
         jc, jp = packed[..., :6], packed[..., 6:12]
         d_inv, s_inv, _, _ = _inverses(inverse, rows)
         kappa = _mv(s_inv, z[:, 6:] - _mv(jp, x[index[:, 1]]))
-        x = _written_to(x, at[:, 0], _mv(d_inv, z[:, :6] + _transposed_mv(jc, kappa)))
+        x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _transposed_mv(jc, kappa)))
         return x, kappa
 
-    levels = (factors.indices, at_bodies, factors.matrices, factors.inverses, right)
-    return jax.lax.scan(substitute, sharding.varying_like(jnp.zeros_like(start), levels[2:]), levels, reverse=True)
+    levels = (factors.indices, factors.matrices, factors.inverses, right)
+    return jax.lax.scan(substitute, sharding.varying_like(jnp.zeros_like(start), levels[1:]), levels, reverse=True)
 
 
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
