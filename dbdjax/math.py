@@ -502,12 +502,18 @@ def gauss_jordan_inverse(matrix: jnp.ndarray) -> jnp.ndarray:
     one, 1.02-1.19x (`benchmarks/results/profile_step_paired_session61_tree_inverse.json`).
     """
     n = matrix.shape[-1]
-    augmented = jnp.concatenate([matrix, jnp.broadcast_to(jnp.eye(n, dtype=matrix.dtype), matrix.shape)], axis=-1)
+    # In place: step k turns column k of [A | 1] into e_k and column k of its right half from e_k
+    # into the inverse's column k, so one n x n array holds both halves' live columns (the same
+    # operations on each entry as on [A | 1], so the same result to the bit). The row and column
+    # writes are updates in place, which also keep XLA from fusing one step into the next.
+    inverse = matrix
     for k in range(n):
-        pivot_row = augmented[..., k, :] / augmented[..., k, k, None]
-        augmented = augmented - augmented[..., :, k, None] * pivot_row[..., None, :]
-        augmented = augmented.at[..., k, :].set(pivot_row)
-    return augmented[..., n:]
+        pivot = inverse[..., k, k]
+        pivot_row = (inverse[..., k, :] / pivot[..., None]).at[..., k].set(1.0 / pivot)
+        column = inverse[..., :, k, None]
+        inverse = inverse.at[..., :, k].set(0.0) - column * pivot_row[..., None, :]
+        inverse = inverse.at[..., k, :].set(pivot_row)
+    return inverse
 
 
 def adjugate3(matrix: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
