@@ -488,8 +488,8 @@ def matvec(matrix: jnp.ndarray, vector: jnp.ndarray) -> jnp.ndarray:
 def gauss_jordan_inverse(matrix: jnp.ndarray) -> jnp.ndarray:
     """Inverse of (..., n, n) matrices whose symmetric part is positive definite (a body's block
     with a velocity-dependent inertia, a sliding contact's tilted row: positive definite up to a
-    skew part), by Gauss-Jordan elimination on [A | 1] without pivoting: n row steps, each one
-    elementwise op over the batch.
+    skew part), by Gauss-Jordan elimination on [A | 1] without pivoting, kept in one n x n array:
+    n row steps, each one elementwise op over the batch between two updates in place.
 
     Without pivoting, stable for such matrices: its float32 error stays within the matrix's
     condition number times the unit roundoff, as pivoted LU's does. The inverse by 3x3 Schur
@@ -499,7 +499,10 @@ def gauss_jordan_inverse(matrix: jnp.ndarray) -> jnp.ndarray:
     translation, the inverse came out off by 2,900 times its largest entry, and the tree's direct
     solve spun the leg 0.47 rad (this one: off by 5e-6, `tests/test_math.py`). An L U inverse
     written out entry by entry was as accurate and made the tree's step 1.6x slower on CPU; this
-    one, 1.02-1.19x (`benchmarks/results/profile_step_paired_session61_tree_inverse.json`).
+    one, 1.02-1.19x (`benchmarks/results/profile_step_paired_session61_tree_inverse.json`). In place
+    rather than on the n x 2n [A | 1] it made the tree's step 1.07-1.25x faster (session 65,
+    `..._session65_in_place_inverse.json`); written with selects instead of the updates in place,
+    about 2x slower (nothing then keeps XLA from fusing the steps together; the HLO not looked at).
     """
     n = matrix.shape[-1]
     # In place: step k turns column k of [A | 1] into e_k and column k of its right half from e_k
