@@ -15,6 +15,7 @@ import scenes
 import dbdjax as dbd
 from dbdjax import collision, constraints, integrator, math, ragdoll
 from dbdjax.constraints import joints
+from dbdjax.model import BALL
 from dbdjax.solvers import dbd as dbd_solver
 from dbdjax.solvers import tree
 
@@ -69,6 +70,61 @@ def test_schedule_puts_children_before_parents_and_cuts_loops_and_sliders():
             if j != num_joints:
                 assert {int(child), int(parent)} == {int(s.joint_body_a.array[j]), int(s.joint_body_b.array[j])}
     assert level_of[1] > max(level_of[2], level_of[3], level_of[4])  # body 1 waits for its three children
+
+
+def _narrowest_width_by_search(parent: list[int], count: int) -> int:
+    """The least width of any assignment of the bodies (parent[b] their parent, -1 a root) to
+    `count` levels with every body above its children: every assignment tried, roots first."""
+    bodies = sorted(range(len(parent)), key=lambda b: _depth(parent, b))  # parents before children
+    best = len(parent)
+
+    def place(k: int, level_of: dict, widths: list[int]) -> None:
+        nonlocal best
+        if max(widths) >= best:
+            return
+        if k == len(bodies):
+            best = max(widths)
+            return
+        body = bodies[k]
+        top = count if parent[body] < 0 else level_of[parent[body]]
+        for level in range(top):
+            widths[level] += 1
+            place(k + 1, {**level_of, body: level}, widths)
+            widths[level] -= 1
+
+    place(0, {}, [0] * count)
+    return best
+
+
+def _depth(parent: list[int], body: int) -> int:
+    return 0 if parent[body] < 0 else 1 + _depth(parent, parent[body])
+
+
+def test_schedule_levels_are_as_narrow_as_any_of_as_many_levels_can_be():
+    # Brax's humanoid: the leaves-first levels were 4, 4, 1, 1, 1 wide (knees and elbows, hips and
+    # shoulders, then the abdomen's two and the torso); an arm can wait beside the pelvis.
+    model = dbd.load_mjcf(ASSETS / "humanoid.xml")
+    joints_, bodies, _ = tree.forest(model.structure)
+    assert joints_.shape == (5, 3)
+    assert sorted(int(b) for b in bodies.ravel() if b != model.num_bodies) == list(range(model.num_bodies))
+    # Random forests of 7 bodies (world-rooted and floating trees), against a search of every
+    # assignment; each body's level above its children's.
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        parent = [-1 if b == 0 or rng.uniform() < 0.15 else int(rng.integers(0, b)) for b in range(7)]
+        # A root is attached to the world or floats with children (a lone body is in no tree).
+        attached = [bool(rng.uniform() < 0.5) or b not in parent for b in range(7)]
+        body_a = [7 if parent[b] < 0 else parent[b] for b in range(7) if parent[b] >= 0 or attached[b]]
+        body_b = [b for b in range(7) if parent[b] >= 0 or attached[b]]
+        kind = np.full(len(body_a), BALL)
+        joints_, bodies, parents = tree.schedule(np.array(body_a), np.array(body_b), kind, 7)
+        height = max(_depth(parent, b) for b in range(7)) + 1
+        assert joints_.shape == (height, _narrowest_width_by_search(parent, height))
+        level_of = {int(b): k for k, row in enumerate(bodies) for b in row if b != 7}
+        assert sorted(level_of) == list(range(7))
+        for b in range(7):
+            if parent[b] >= 0:
+                assert level_of[parent[b]] > level_of[b]
 
 
 def test_tree_guess_is_the_exact_solution_of_the_linearised_point_constraints(float64):

@@ -89,7 +89,8 @@ def schedule(
     Returns (tree_joint, tree_body, tree_parent), each (L, W) int32. Slot w of level l holds a
     joint, its child body (the side away from the root) and its parent body (num_bodies for the
     world). A floating tree's root body has joint J (none). Empty slots hold (J, N, N). The
-    children of every body sit at earlier levels. No tree joint: arrays of shape (0, 1).
+    children of every body sit at earlier levels; as many levels as the forest is high, each as
+    narrow as can be (`_narrowest_levels`). No tree joint: arrays of shape (0, 1).
     Trees are rooted at the world where attached, else at their lowest body index; a joint that
     would close a loop (or joins two static sides) is left out, as is every slider.
     """
@@ -138,7 +139,7 @@ def schedule(
     for body in reversed(order):
         if up_body[body] != world:
             height[up_body[body]] = max(height[up_body[body]], height[body] + 1)
-    levels = [sorted(b for b in order if height[b] == k) for k in range(int(height[order].max()) + 1)]
+    levels = _narrowest_levels(order, up_body, world, int(height[order].max()) + 1)
     width = max(len(members) for members in levels)
     tree_joint = np.full((len(levels), width), num_joints, dtype=np.int32)
     tree_body = np.full((len(levels), width), world, dtype=np.int32)
@@ -147,6 +148,42 @@ def schedule(
         for w, body in enumerate(members):
             tree_joint[k, w], tree_body[k, w], tree_parent[k, w] = up_joint[body], body, up_body[body]
     return tree_joint, tree_body, tree_parent
+
+
+def _narrowest_levels(order: list[int], parent: np.ndarray, world: int, count: int) -> list[list[int]]:
+    """The bodies of `order` (every parent before its children; parent[b] its parent body, `world`
+    for a root) in `count` levels, each body at a later level than its children, as few a level as
+    can be (the width every level is padded to, so the work of every level's step).
+
+    By Hu's rule (T. C. Hu 1961, "Parallel sequencing and assembly line problems": for a forest of
+    unit tasks whose every task has one successor, it meets the least number of steps of any
+    schedule on `width` processors): level by level from the leaves, take up to `width` of the
+    bodies whose children are all placed, those farthest from their root first; the narrowest
+    `width` whose schedule fits in `count` levels (the tree's height: no schedule has fewer). Brax's
+    humanoid: levels of 3, 3, 3, 1, 1 bodies instead of the leaves-first 4, 4, 1, 1, 1 (an arm
+    one level later, beside the pelvis), so 15 slots instead of 20."""
+    depth = {}  # edges to the root
+    for body in order:
+        depth[body] = 0 if parent[body] == world else depth[int(parent[body])] + 1
+    children = {body: 0 for body in order}
+    for body in order:
+        if parent[body] != world:
+            children[int(parent[body])] += 1
+    for width in range(-(-len(order) // count), len(order) + 1):
+        waiting, ready, levels = dict(children), [b for b in order if children[b] == 0], []
+        while ready and len(levels) < count:
+            ready.sort(key=lambda b: (-depth[b], b))
+            level, ready = sorted(ready[:width]), ready[width:]
+            levels.append(level)
+            for body in level:
+                up = int(parent[body])
+                if up != world:
+                    waiting[up] -= 1
+                    if waiting[up] == 0:
+                        ready.append(up)
+        if not ready and sum(len(level) for level in levels) == len(order):
+            return levels
+    raise AssertionError("a forest of `count` levels fits in one level per body")
 
 
 def _mv(a: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
