@@ -564,7 +564,7 @@ def pivot_inertias(chain: Chain, pivot: jnp.ndarray, quat: jnp.ndarray, com: jnp
     """
     rotation = math.quat_to_matrix(quat)
     # (N, 3, 3) about each com
-    world = math.matmul(math.matmul(rotation, chain.inertia), jnp.swapaxes(rotation, -1, -2))
+    world = math.matmul(math.matmul(rotation, chain.inertia), rotation, transpose_b=True)
     d = com[None, :, :] - pivot[:, None, :]  # (k, i, 3)
     eye = jnp.eye(3, dtype=d.dtype)
     shifted = chain.mass[None, :, None, None] * (

@@ -575,9 +575,9 @@ def prepare_joint(joint: Joints, flag: joints.JointFlags, target: joints.Targets
     if {"rotor_ball", "ball_drive"} <= rows:  # `solve_drive_block_beside_rotor`
         carry = jnp.where(ball_rotor_on, rotor.mix, eye)  # mix_r = (1 + I_r K')^-1
         drive_hold = jnp.where(ball_rotor_on, rotor_hold, 0.0)
-        drive_push = Push(*(math.matmul(jnp.swapaxes(carry, -1, -2), field)
+        drive_push = Push(*(math.matmul(carry, field, transpose_a=True)
                             for field in held_push(drive, point, drive_hold)))  # fmt: skip
-        drive_hold = math.matmul(jnp.swapaxes(carry, -1, -2), drive_hold)
+        drive_hold = math.matmul(carry, drive_hold, transpose_a=True)
         drive_rotor_share = carry - eye
 
     linear, angular_a, angular_b = (jnp.stack([entry[k] for entry in scalar]) for k in range(3))
