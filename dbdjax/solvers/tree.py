@@ -152,16 +152,16 @@ def schedule(
 
 def _narrowest_levels(order: list[int], parent: np.ndarray, world: int, count: int) -> list[list[int]]:
     """The bodies of `order` (every parent before its children; parent[b] its parent body, `world`
-    for a root) in `count` levels, each body at a later level than its children, as few a level as
-    can be (the width every level is padded to, so the work of every level's step).
+    for a root) in `count` levels, each body at a later level than its children, the widest level
+    as narrow as can be: every level is padded to it, so it sets the work of every level's step.
 
     By Hu's rule (T. C. Hu 1961, "Parallel sequencing and assembly line problems": for a forest of
     unit tasks whose every task has one successor, it meets the least number of steps of any
     schedule on `width` processors): level by level from the leaves, take up to `width` of the
     bodies whose children are all placed, those farthest from their root first; the narrowest
     `width` whose schedule fits in `count` levels (the tree's height: no schedule has fewer). Brax's
-    humanoid: levels of 3, 3, 3, 1, 1 bodies instead of the leaves-first 4, 4, 1, 1, 1 (an arm
-    one level later, beside the pelvis), so 15 slots instead of 20."""
+    humanoid: levels of 3, 3, 3, 1, 1 bodies instead of the leaves-first 4, 4, 1, 1, 1 (the upper
+    arms wait beside the pelvis, one forearm beside the thighs): 15 slots instead of 20."""
     depth = {}  # edges to the root
     for body in order:
         depth[body] = 0 if parent[body] == world else depth[int(parent[body])] + 1
