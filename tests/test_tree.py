@@ -22,17 +22,20 @@ from dbdjax.solvers import tree
 ASSETS = Path(__file__).parent / "assets"
 
 
-def branching_model(**finalize):
+def branching_model(floating=False, **finalize):
     """Every case the schedule meets: a world-rooted tree that branches three ways at body 1, a
     floating tree (bodies 5-6), a joint closing a loop (1-4-3), a slider, a hinge and a fixed
-    joint, regularisation on some joints and a joint whose body_a is the child."""
+    joint, regularisation on some joints and a joint whose body_a is the child. floating: body 0
+    not joined to the world (joint 0 left out), so the first tree floats too."""
     b = dbd.ModelBuilder(gravity=(0, 0, -9.81))
     rng = np.random.default_rng(3)
     for _ in range(8):
         inertia = rng.uniform(0.02, 0.05, size=3)
         b.add_body(pos=rng.normal(size=3), mass=rng.uniform(0.5, 2.0), inertia=inertia, quat=rng.normal(size=4))
     anchor = lambda: rng.normal(size=3)  # noqa: E731
-    b.add_ball_joint(dbd.WORLD, 0, anchor=anchor())
+    world_anchor = anchor()
+    if not floating:
+        b.add_ball_joint(dbd.WORLD, 0, anchor=world_anchor)
     b.add_hinge_joint(0, 1, anchor=anchor(), axis=(0, 0, 1), regularization=0.3)
     b.add_ball_joint(1, 2, anchor=anchor())
     b.add_fixed_joint(3, 1, anchor=anchor())  # the child on side a
@@ -106,6 +109,8 @@ def test_schedule_levels_are_as_narrow_as_any_of_as_many_levels_can_be():
     model = dbd.load_mjcf(ASSETS / "humanoid.xml")
     joints_, bodies, _ = tree.forest(model.structure)
     assert joints_.shape == (5, 3)
+    slots = tree._slots(model.structure)  # the torso, a floating root alone in the last level, after them
+    assert slots.indices.shape[:2] == (4, 3) and slots.roots.tolist() == [int(bodies[-1][0])]
     assert sorted(int(b) for b in bodies.ravel() if b != model.num_bodies) == list(range(model.num_bodies))
     # Random forests of 7 bodies (world-rooted and floating trees), against a search of every
     # assignment; each body's level above its children's.
@@ -127,8 +132,9 @@ def test_schedule_levels_are_as_narrow_as_any_of_as_many_levels_can_be():
                 assert level_of[parent[b]] > level_of[b]
 
 
-def test_tree_guess_is_the_exact_solution_of_the_linearised_point_constraints(float64):
-    model = branching_model(velocity_dependent_inertia=True)
+def _tree_guess_against_a_dense_solve(model, tree_joints):
+    """The tree's initial guess at a displaced X* of `model`, checked against the dense solve of
+    the linearised point constraints of `tree_joints`; returns the guess's multipliers (J, 3)."""
     predicted = displaced_predicted_state(model)
     spin = jnp.asarray(np.random.default_rng(1).normal(size=(8, 3)))
     predicted = dbd.State(predicted.pos, predicted.quat, predicted.vel, spin)
@@ -138,7 +144,6 @@ def test_tree_guess_is_the_exact_solution_of_the_linearised_point_constraints(fl
     # Brute force: assemble J (3 rows per tree joint, vector form DBD (65)) and M~^-1, solve densely.
     delta, arm_a, arm_b = tree.point_gaps(model, table)
     s = model.structure
-    tree_joints = [0, 1, 2, 3, 4, 6]
     n = s.num_bodies
     jacobian = np.zeros((3 * len(tree_joints), 6 * n))
     for row, j in enumerate(tree_joints):
@@ -157,10 +162,25 @@ def test_tree_guess_is_the_exact_solution_of_the_linearised_point_constraints(fl
 
     assert np.abs(np.asarray(delta)[tree_joints]).max() > 0.01  # the joints really are apart
     np.testing.assert_allclose(np.asarray(kappa)[tree_joints].ravel(), expected_kappa, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(kappa)[[5, 7]], 0.0)  # loop and slider: left to the iterations
     np.testing.assert_allclose(np.asarray(dx)[:n], expected[:, :3], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(np.asarray(dtheta)[:n], expected[:, 3:], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(np.asarray(dx)[n], 0.0)
+    return np.asarray(kappa)
+
+
+def test_tree_guess_is_the_exact_solution_of_the_linearised_point_constraints(float64):
+    model = branching_model(velocity_dependent_inertia=True)
+    kappa = _tree_guess_against_a_dense_solve(model, [0, 1, 2, 3, 4, 6])
+    np.testing.assert_allclose(kappa[[5, 7]], 0.0)  # loop and slider: left to the iterations
+
+
+def test_tree_guess_is_exact_with_the_floating_roots_taken_after_the_levels(float64):
+    # With body 0 floating, the schedule's last level holds floating roots alone: they are
+    # eliminated after the levels' scan, not as a level of it (`tree._slots`).
+    model = branching_model(floating=True, velocity_dependent_inertia=True)
+    assert 0 in tree._slots(model.structure).roots
+    kappa = _tree_guess_against_a_dense_solve(model, [0, 1, 2, 3, 5])
+    np.testing.assert_allclose(kappa[[4, 6]], 0.0)  # loop and slider
 
 
 def ball_tree(initial_guess):
@@ -317,7 +337,7 @@ def test_the_whole_joint_solve_traces_its_second_solve_as_its_first_run_again(as
     original = tree.factor
 
     def factorisation(*args, **kwargs):
-        return original(*args, **kwargs)._replace(indices=None, joint=None, empty=None)
+        return original(*args, **kwargs)._replace(indices=None, joint=None, empty=None, roots=None)
 
     def factor(model, *args, **kwargs):  # a call of `factorisation` in the program, the slots' layout static
         return jax.jit(factorisation)(model, *args, **kwargs)._replace(**tree._slots(model.structure)._asdict())

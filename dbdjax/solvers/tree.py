@@ -476,16 +476,19 @@ def angular_increments(structure: Structure, rows: AngularRows, step: jnp.ndarra
 
 class Factors(NamedTuple):
     """The saddle-point system of the joint tree eliminated at one configuration, per level slot
-    (L, W): what `solve` needs besides the gaps. Built by `factor`: at X* for the initial guess,
-    and where each sweep left the bodies for `tree_solve`."""
+    (L, W) and for the floating roots after them (`_Slots`): what `solve` needs besides the gaps.
+    Built by `factor`: at X* for the initial guess, and where each sweep left the bodies for
+    `tree_solve`."""
 
     indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
     joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
     empty: np.ndarray  # (L, W) bool
+    roots: np.ndarray  # (K,) the floating roots eliminated after the levels
     matrices: jnp.ndarray  # (L, W, R, 13) [J_child | J_parent | alpha], R = 3 point rows (+ K angular rows)
     # (L, W, max(6, R), 2 (6 + R)) [D_b^-1 | S_j^-1 | J_child D_b^-1 | J_parent^T S_j^-1], each in
     # its top rows: the two products too, which `factor` forms anyway and every solve's elimination reads.
     inverses: jnp.ndarray
+    root_inverses: jnp.ndarray  # (K, 6, 6) D_b^-1 of each of `roots`
 
 
 def _inverses(inverse: jnp.ndarray, rows: int) -> tuple[jnp.ndarray, ...]:
@@ -496,17 +499,26 @@ def _inverses(inverse: jnp.ndarray, rows: int) -> tuple[jnp.ndarray, ...]:
 
 
 class _Slots(NamedTuple):
-    """The level slots' layout (`Factors`' first fields)."""
+    """The level slots' layout (`Factors`' first fields). Where the schedule's last level holds
+    floating roots alone (Brax's humanoid's and ant's torso), they are `roots`, not a level: a
+    floating root has no joint, so all its level would do is invert its block, padded to the
+    widest level's rows and joints' row blocks; after the levels it is one 6 x 6 inverse a root."""
 
     indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
     joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
     empty: np.ndarray  # (L, W) bool
+    roots: np.ndarray  # (K,) floating roots after the levels
 
 
 def _slots(structure: Structure) -> _Slots:
     tree_joint, tree_body, tree_parent = forest(structure)
     empty = tree_joint == structure.num_joints
-    return _Slots(np.stack([tree_body, tree_parent], axis=-1), np.where(empty, 0, tree_joint), empty)
+    indices = np.stack([tree_body, tree_parent], axis=-1)
+    roots = np.zeros(0, np.int32)
+    if len(tree_joint) > 1 and empty[-1].all():  # the last level's bodies are floating roots (or none)
+        roots, indices, empty, tree_joint = tree_body[-1][tree_body[-1] != structure.num_bodies], \
+            indices[:-1], empty[:-1], tree_joint[:-1]  # fmt: skip
+    return _Slots(indices, np.where(empty, 0, tree_joint), empty, roots)
 
 
 def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, points=None,
@@ -543,7 +555,7 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         blocks = blocks + tree_contacts.added_blocks(contact, world)
 
     # Per slot (L, W): the joint's Jacobian toward its child body and toward its parent body.
-    indices, joint, empty = _slots(structure)
+    indices, joint, empty, roots = _slots(structure)
     tree_body, tree_parent = indices[..., 0], indices[..., 1]
     child_is_a = structure.joint_body_a.array[joint] == tree_body
     sign = np.where(empty, 0.0, np.where(child_is_a, 1.0, -1.0))
@@ -586,8 +598,9 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         packed = [padded(d_inv), padded(s_inv), padded(child_products), padded(parent_products)]
         return carry, jnp.concatenate(packed, axis=-1)  # (W, max(6, R), 2 (6 + R))
 
-    _, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), (indices, matrices))
-    return Factors(indices=indices, joint=joint, empty=empty, matrices=matrices, inverses=inverses)
+    blocks, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), (indices, matrices))
+    return Factors(indices=indices, joint=joint, empty=empty, roots=roots, matrices=matrices, inverses=inverses,
+                   root_inverses=math.gauss_jordan_inverse(blocks[roots]))  # fmt: skip
 
 
 def _slot_rows(factors: Factors, rows: jnp.ndarray) -> jnp.ndarray:
@@ -621,7 +634,11 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
         return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
     levels = (factors.indices, factors.inverses, gap)
-    _, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[1:]), levels)
+    z, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[1:]), levels)
+    # The floating roots (no joint): dX_root = D_root^-1 z_root, where the levels' substitution starts.
+    x = jnp.zeros_like(start)
+    if len(factors.roots):
+        x = x.at[factors.roots].set(_mv(factors.root_inverses, z[factors.roots]))
 
     def substitute(x, level):
         index, packed, inverse, z = level
@@ -632,7 +649,7 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
         return x, kappa
 
     levels = (factors.indices, factors.matrices, factors.inverses, right)
-    return jax.lax.scan(substitute, sharding.varying_like(jnp.zeros_like(start), levels[1:]), levels, reverse=True)
+    return jax.lax.scan(substitute, sharding.varying_like(x, levels[1:]), levels, reverse=True)
 
 
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,
@@ -821,7 +838,7 @@ def direct_step(model: Model, bodies: BodySet, touching: tree_contacts.Touching 
         lam = jnp.zeros((structure.num_joints, joint_family.NUM_MULTIPLIERS), bodies.inv_inertia.dtype)
 
     def chord_factors(factors):  # what the closing step needs of a solve's factors (none without it)
-        return (factors.matrices, factors.inverses) if close else ()
+        return (factors.matrices, factors.inverses, factors.root_inverses) if close else ()
 
     def closed(result, factors):
         if not close:
