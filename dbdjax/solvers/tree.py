@@ -50,9 +50,10 @@ How. Bodies and joints form a forest (a joint closing a loop is left out). The s
 back-substituted without fill-in, in time linear in the number of joints (Baraff 1996,
 "Linear-time dynamics using Lagrange multipliers"). A level of the tree is one step of a
 `lax.scan`, all the (joint, child body) pairs of the level at once: sequential in the depth of
-the tree, parallel across it (each level as narrow as the tree's height allows, `schedule`; floating
-roots alone in the last level after the scan, `_Slots`). Writing S_j = alpha + J_jb D_b^-1 J_jb^T for a joint j whose child
-body b has the eliminated block D_b (its mass plus the stiffness its own children add):
+the tree, parallel across it (each level as narrow as the tree's height allows, `schedule`;
+floating roots alone in the last level after the scan, `_Slots`). Writing
+S_j = alpha + J_jb D_b^-1 J_jb^T for a joint j whose child body b has the eliminated block D_b (its
+mass plus the stiffness its own children add):
 
     leaves -> roots:  z_j = -c_j - J_jb D_b^-1 z_b;   D_p += J_jp^T S_j^-1 J_jp;   z_p += J_jp^T S_j^-1 z_j
     roots -> leaves:  kappa_j = S_j^-1 (z_j - J_jp dX_p);   dX_b = D_b^-1 (z_b + J_jb^T kappa_j)
