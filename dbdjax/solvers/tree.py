@@ -185,7 +185,7 @@ def _narrowest_levels(order: list[int], parent: np.ndarray, world: int, count: i
                         ready.append(up)
         if not ready and sum(len(level) for level in levels) == len(order):
             return levels
-    raise AssertionError("a forest of `count` levels fits in one level per body")
+    raise AssertionError("unreachable: at the width of every body a schedule of `count` levels fits")
 
 
 def _mv(a: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
@@ -517,9 +517,10 @@ def _slots(structure: Structure) -> _Slots:
     empty = tree_joint == structure.num_joints
     indices = np.stack([tree_body, tree_parent], axis=-1)
     roots = np.zeros(0, np.int32)
-    if len(tree_joint) > 1 and empty[-1].all():  # the last level's bodies are floating roots (or none)
-        roots, indices, empty, tree_joint = tree_body[-1][tree_body[-1] != structure.num_bodies], \
-            indices[:-1], empty[:-1], tree_joint[:-1]  # fmt: skip
+    if len(tree_joint) > 1 and empty[-1].all():  # no joint in the last level: its bodies are floating roots
+        last = tree_body[-1]
+        roots = last[last != structure.num_bodies]
+        indices, empty, tree_joint = indices[:-1], empty[:-1], tree_joint[:-1]
     return _Slots(indices, np.where(empty, 0, tree_joint), empty, roots)
 
 
