@@ -113,7 +113,7 @@ def test_schedule_levels_are_as_narrow_as_any_of_as_many_levels_can_be():
     assert slots.indices.shape[:2] == (4, 3) and slots.roots.tolist() == [int(bodies[-1][0])]
     assert sorted(int(b) for b in bodies.ravel() if b != model.num_bodies) == list(range(model.num_bodies))
     # Random forests of 7 bodies (world-rooted and floating trees), against a search of every
-    # assignment; each body's level above its children's.
+    # assignment; each body's level above its children's, the floating roots alone in the last.
     rng = np.random.default_rng(0)
     for _ in range(40):
         parent = [-1 if b == 0 or rng.uniform() < 0.15 else int(rng.integers(0, b)) for b in range(7)]
@@ -123,8 +123,15 @@ def test_schedule_levels_are_as_narrow_as_any_of_as_many_levels_can_be():
         body_b = [b for b in range(7) if parent[b] >= 0 or attached[b]]
         kind = np.full(len(body_a), BALL)
         joints_, bodies, parents = tree.schedule(np.array(body_a), np.array(body_b), kind, 7)
-        height = max(_depth(parent, b) for b in range(7)) + 1
-        assert joints_.shape == (height, _narrowest_width_by_search(parent, height))
+        floating = [b for b in range(7) if parent[b] < 0 and not attached[b]]
+        jointed = [b for b in range(7) if b not in floating]  # a floating root's children: roots among them
+        up = [jointed.index(parent[b]) if parent[b] >= 0 and parent[b] not in floating else -1 for b in jointed]
+        height = max(_depth(up, k) for k in range(len(jointed))) + 1
+        assert len(bodies) == height + bool(floating)
+        widest = max(int(np.sum(row != 7)) for row in bodies[:height])
+        assert widest == _narrowest_width_by_search(up, height)
+        if floating:
+            assert sorted(int(b) for b in bodies[-1] if b != 7) == floating
         level_of = {int(b): k for k, row in enumerate(bodies) for b in row if b != 7}
         assert sorted(level_of) == list(range(7))
         for b in range(7):

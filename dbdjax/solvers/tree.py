@@ -51,7 +51,7 @@ back-substituted without fill-in, in time linear in the number of joints (Baraff
 "Linear-time dynamics using Lagrange multipliers"). A level of the tree is one step of a
 `lax.scan`, all the (joint, child body) pairs of the level at once: sequential in the depth of
 the tree, parallel across it (each level as narrow as the tree's height allows, `schedule`;
-floating roots alone in the last level after the scan, `_Slots`). Writing
+floating roots, the last level alone, after the scan, `_Slots`). Writing
 S_j = alpha + J_jb D_b^-1 J_jb^T for a joint j whose child body b has the eliminated block D_b (its
 mass plus the stiffness its own children add):
 
@@ -91,8 +91,9 @@ def schedule(
     Returns (tree_joint, tree_body, tree_parent), each (L, W) int32. Slot w of level l holds a
     joint, its child body (the side away from the root) and its parent body (num_bodies for the
     world). A floating tree's root body has joint J (none). Empty slots hold (J, N, N). The
-    children of every body sit at earlier levels; as many levels as the forest is high, each as
-    narrow as can be (`_narrowest_levels`). No tree joint: arrays of shape (0, 1).
+    children of every body sit at earlier levels: the jointed bodies in as many levels as they are
+    high, each as narrow as can be (`_narrowest_levels`), then the floating roots, if any, alone in
+    one more. No tree joint: arrays of shape (0, 1).
     Trees are rooted at the world where attached, else at their lowest body index; a joint that
     would close a loop (or joins two static sides) is left out, as is every slider.
     """
@@ -141,7 +142,14 @@ def schedule(
     for body in reversed(order):
         if up_body[body] != world:
             height[up_body[body]] = max(height[up_body[body]], height[body] + 1)
-    levels = _narrowest_levels(order, up_body, world, int(height[order].max()) + 1)
+    # A floating root has no joint: it waits in a last level of its own (`_Slots.roots`), and the
+    # jointed bodies take the levels below it, a floating root's children as roots of their own.
+    floating = [b for b in order if up_joint[b] == num_joints]
+    jointed = [b for b in order if up_joint[b] != num_joints]
+    parent = np.where(up_joint[up_body] == num_joints, world, up_body)  # (the world's own entry is J too)
+    levels = _narrowest_levels(jointed, parent, world, int(height[jointed].max()) + 1)
+    if floating:
+        levels.append(sorted(floating))
     width = max(len(members) for members in levels)
     tree_joint = np.full((len(levels), width), num_joints, dtype=np.int32)
     tree_body = np.full((len(levels), width), world, dtype=np.int32)
@@ -501,10 +509,10 @@ def _inverses(inverse: jnp.ndarray, rows: int) -> tuple[jnp.ndarray, ...]:
 
 
 class _Slots(NamedTuple):
-    """The level slots' layout (`Factors`' first fields). Where the schedule's last level holds
-    floating roots alone (Brax's humanoid's and ant's torso), they are `roots`, not a level: a
-    floating root has no joint, so all its level would do is invert its block, padded to the
-    widest level's rows and joints' row blocks; after the levels it is one 6 x 6 inverse a root."""
+    """The level slots' layout (`Factors`' first fields). The floating roots (Brax's humanoid's and
+    ant's torso), the schedule's last level, are `roots`, not a level: a floating root has no
+    joint, so all its level would do is invert its block, padded to the widest level's rows and
+    joints' row blocks; after the levels it is one 6 x 6 inverse a root."""
 
     indices: np.ndarray  # (L, W, 2) child body, parent body (num_bodies for the world)
     joint: np.ndarray  # (L, W) the slot's joint (0 in empty slots)
@@ -517,10 +525,10 @@ def _slots(structure: Structure) -> _Slots:
     empty = tree_joint == structure.num_joints
     indices = np.stack([tree_body, tree_parent], axis=-1)
     roots = np.zeros(0, np.int32)
-    if len(tree_joint) > 1 and empty[-1].all():  # no joint in the last level: its bodies are floating roots
-        last = tree_body[-1]
-        roots = last[last != structure.num_bodies]
-        indices, empty, tree_joint = indices[:-1], empty[:-1], tree_joint[:-1]
+    if len(tree_joint) and empty[-1].all():  # the floating roots' level (`schedule`)
+        roots = tree_body[-1][tree_body[-1] != structure.num_bodies]
+        width = max(1, int((~empty[:-1]).sum(axis=1).max()))  # the jointed levels', each filled from the left
+        indices, empty, tree_joint = indices[:-1, :width], empty[:-1, :width], tree_joint[:-1, :width]
     return _Slots(indices, np.where(empty, 0, tree_joint), empty, roots)
 
 
