@@ -69,6 +69,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dbdjax.indexing import take
 from dbdjax.math import (
     any_perpendicular,
     cross,
@@ -870,8 +871,9 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
         for s in side:
             local_quat = shapes.local_quat[s["shape"]]
             s["size"] = shapes.size[s["shape"]]
-            s["pos"] = pos[s["body"]] + quat_rotate(quat[s["body"]], shapes.local_pos[s["shape"]])
-            s["quat"] = quat_multiply(quat[s["body"]], local_quat)
+            body_quat = take(quat, s["body"])
+            s["pos"] = take(pos, s["body"]) + quat_rotate(body_quat, shapes.local_pos[s["shape"]])
+            s["quat"] = quat_multiply(body_quat, local_quat)
 
         a, b = side
         one_pair = functools.partial(collide, group.kind_a, group.kind_b)
@@ -884,16 +886,16 @@ def detect(model, start, predicted, h: float) -> tuple[ContactSlots, ...]:
             """The world point (C, P, 3) as a point fixed in the body: local coordinates, its arm
             at the start of the substep, its predicted velocity and its velocity at the start."""
             body = s["body"]
-            origin, orientation = pos[body][:, None], quat[body][:, None]
+            origin, orientation = take(pos, body)[:, None], take(quat, body)[:, None]
             local = quat_rotate_inverse(orientation, point - origin)
-            start_arm = quat_rotate(start_quat[body][:, None], local)
-            speed = vel[body][:, None] + cross(ang_vel[body][:, None], point - origin)
-            start_speed = start_vel[body][:, None] + cross(start_ang_vel[body][:, None], start_arm)
+            start_arm = quat_rotate(take(start_quat, body)[:, None], local)
+            speed = take(vel, body)[:, None] + cross(take(ang_vel, body)[:, None], point - origin)
+            start_speed = take(start_vel, body)[:, None] + cross(take(start_ang_vel, body)[:, None], start_arm)
             return local, start_arm, speed, start_speed
 
         local_a, start_arm_a, speed_a, start_speed_a = body_point(a, contacts.point_a)
         local_b, start_arm_b, speed_b, start_speed_b = body_point(b, contacts.point_b)
-        offset = (start_pos[b["body"]] - start_pos[a["body"]])[:, None] + (start_arm_b - start_arm_a)
+        offset = (take(start_pos, b["body"]) - take(start_pos, a["body"]))[:, None] + (start_arm_b - start_arm_a)
         # Speculative slots: a point closer than the margin at X* or where it began the substep. The
         # solve moves bodies away from X* (joints drag them), and a point found at X* alone missed
         # what it was dragged into: over 10,000 pushed ragdoll steps (tests/test_ragdoll.py) an

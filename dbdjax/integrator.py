@@ -6,11 +6,11 @@ displacement dX from the prediction X*, and velocities are corrected by dX / h (
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dbdjax import math
+from dbdjax.indexing import segment_sum, take
 from dbdjax.model import UNIVERSAL, Model, State
 
 
@@ -53,28 +53,29 @@ def actuator_wrenches(model: Model, state: State, control: jnp.ndarray) -> tuple
     a, b = structure.torque_bodies.array[:, 0], structure.torque_bodies.array[:, 1]
     pos = jnp.concatenate([state.pos, jnp.zeros((1, 3), state.pos.dtype)])
     quat = jnp.concatenate([state.quat, math.quat_identity((1,)).astype(state.quat.dtype)])
-    u = jnp.asarray(control, state.pos.dtype)[structure.torque_control.array] * model.torques.gear
+    u = take(jnp.asarray(control, state.pos.dtype), structure.torque_control.array) * model.torques.gear
     if structure.torque_in_joint.array.size:  # these act through their joint's rotor row (armature)
         u = jnp.where(jnp.asarray(structure.torque_in_joint.array), 0.0, u)
-    axis_a = math.quat_rotate(quat[a], model.torques.local_axis_a)
-    axis_b = math.quat_rotate(quat[b], model.torques.local_axis_b)
+    quat_a, quat_b = take(quat, a), take(quat, b)
+    axis_a = math.quat_rotate(quat_a, model.torques.local_axis_a)
+    axis_b = math.quat_rotate(quat_b, model.torques.local_axis_b)
     linear = jnp.asarray(structure.torque_linear.array)[:, None]
     turning, _ = math.safe_normalize(axis_a + axis_b)
     direction = jnp.where(linear, axis_a, turning)
     dof = structure.torque_dof.array
     if dof.size and (dof >= 0).any():  # hinges of universal and gimbal joints
         joint = structure.torque_joint.array
-        axes_a = math.quat_rotate(quat[a][:, None], model.joints.local_axes_a[joint])
-        axes_b = math.quat_rotate(quat[b][:, None], model.joints.local_axes_b[joint])
+        axes_a = math.quat_rotate(quat_a[:, None], model.joints.local_axes_a[joint])
+        axes_b = math.quat_rotate(quat_b[:, None], model.joints.local_axes_b[joint])
         _, gradients = math.euler_angles(axes_a, axes_b, structure.joint_kind.array[joint] == UNIVERSAL)
-        on_hinge = gradients[np.arange(len(dof)), np.maximum(dof, 0)]
+        on_hinge = take(gradients.reshape(-1, 3), 3 * np.arange(len(dof)) + np.maximum(dof, 0))
         direction = jnp.where(jnp.asarray(dof >= 0)[:, None], on_hinge, direction)
     push = u[:, None] * direction
     force_b = jnp.where(linear, push, 0.0)
     torque_b = jnp.where(linear, 0.0, push)
-    torque_a = jnp.where(linear, -math.cross(pos[b] - pos[a], push), -push)
-    force = jax.ops.segment_sum(jnp.concatenate([force_b, -force_b]), np.concatenate([b, a]), n + 1)
-    torque = jax.ops.segment_sum(jnp.concatenate([torque_b, torque_a]), np.concatenate([b, a]), n + 1)
+    torque_a = jnp.where(linear, -math.cross(take(pos, b) - take(pos, a), push), -push)
+    force = segment_sum(jnp.concatenate([force_b, -force_b]), np.concatenate([b, a]), n + 1)
+    torque = segment_sum(jnp.concatenate([torque_b, torque_a]), np.concatenate([b, a]), n + 1)
     return force[:n], torque[:n]
 
 
@@ -86,7 +87,7 @@ def implicit_gyroscopic(inertia: jnp.ndarray, ang_vel: jnp.ndarray, h: float) ->
     """
     moment = inertia * ang_vel
     residual = h * math.cross(ang_vel, moment)
-    jacobian = jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(inertia) + h * (
+    jacobian = inertia[..., None, :] * jnp.eye(3, dtype=inertia.dtype) + h * (  # diag(I): no gather to transpose
         math.skew(ang_vel) * inertia[..., None, :] - math.skew(moment)
     )
     return ang_vel - math.matvec(math.inverse3(jacobian), residual)

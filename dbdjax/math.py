@@ -299,9 +299,17 @@ def wrap_angle(angle: jnp.ndarray) -> jnp.ndarray:
     return angle - (2.0 * jnp.pi) * jnp.round(angle / (2.0 * jnp.pi))
 
 
+def diagonal(matrix: jnp.ndarray) -> jnp.ndarray:
+    """The diagonals (..., n) of square matrices (..., n, n), as a strided slice of each matrix's
+    entries: `jnp.diagonal` gathers, and reverse mode turns a gather into a scatter (a loop of
+    kernels on CPU: `dbdjax.indexing`)."""
+    n = matrix.shape[-1]
+    return matrix.reshape(matrix.shape[:-2] + (n * n,))[..., :: n + 1]
+
+
 def quat_identity(shape: tuple[int, ...] = ()) -> jnp.ndarray:
     """Identity quaternions of the given leading shape, (*shape, 4)."""
-    return jnp.zeros(shape + (4,)).at[..., 0].set(1.0)
+    return jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0]), shape + (4,))
 
 
 def _product_tangents(p, q):

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend import core
 
-from dbdjax import math
+from dbdjax import indexing, math
 
 # Primitives that act element by element on operands of one shape (a scalar operand broadcasts).
 ELEMENTWISE = frozenset({
@@ -268,6 +268,8 @@ def _rule(equation, values: list, size: int) -> list:
             equation, [_with_batch(values[0], size), values[1][0], updates], **dict(params, dimension_numbers=numbers)
         )
         return [(out[0], True)]
+    if name in indexing.LEADING_AXIS and not values[1][1] and not values[2][1]:  # x's leading axis alone
+        return [(_bind(equation, [values[0][0], values[1][0], values[2][0]])[0], True)]
     if name == "dot_general" and _is_small_dot(equation):
         return [(_small_dot(values, params["dimension_numbers"], shape, size), True)]
     if name in math.WRITTEN_OUT:  # math's written-out products: their components, in place

@@ -18,6 +18,7 @@ from dbdjax import math
 from dbdjax.collision import ContactSlots
 from dbdjax.constraints import contacts as contact
 from dbdjax.constraints import forces, joints, links, multibody, targets
+from dbdjax.indexing import take
 from dbdjax.model import Model, State
 
 
@@ -120,6 +121,6 @@ def gather(family: Family, nodes: np.ndarray) -> Family:
     """The family restricted to `nodes` (static indices), parameters gathered once."""
     return family._replace(
         bodies=family.bodies[nodes],
-        params=jax.tree.map(lambda x: x[nodes], family.params),
-        static=jax.tree.map(lambda x: x[nodes], family.static),
+        params=jax.tree.map(lambda x: take(x, nodes), family.params),
+        static=jax.tree.map(lambda x: take(x, nodes), family.static),
     )

@@ -120,8 +120,9 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
     # errors of the rows: the gap (p_b - p_a) . n (84), less the depth the point may keep this
     # substep (`ContactSlots.allowed_depth`), and the slip in the plane (89)
     error = math.dot(directions, (-delta - slots.offset)[:, None, :])
-    error = error.at[:, 0].set(-math.dot(delta, slots.normal) + slots.allowed_depth)
-    diagonal = jnp.diagonal(coupling).reshape(points, 3)
+    gap = -math.dot(delta, slots.normal) + slots.allowed_depth
+    error = jnp.concatenate([gap[:, None], error[:, 1:]], axis=1)  # (not .at[:, 0].set: no scatter)
+    diagonal = math.diagonal(coupling).reshape(points, 3)
     blocks = coupling.reshape(points, 3, points, 3)
     solvable = slots.active & (diagonal[:, 0] > 0.0)
 
@@ -140,7 +141,7 @@ def project_contacts(slots: ContactSlots, world: np.ndarray, bodies: BodySet, mu
         bound = jnp.where(slots.sliding[i], slots.dynamic_friction, slots.friction) * normal
         kappa = jnp.where(kappa_size > bound, bound * kappa_direction[:2], kappa)  # (93)
         new = jnp.where(solvable[i], jnp.concatenate([normal[None], kappa]), total)
-        return increment.at[i].set(new - lam[i])
+        return jnp.where((np.arange(points) == i)[:, None], new - lam[i], increment)  # row i (a mask: no scatter)
 
     def sweep(increment, _):
         for i in range(points):  # unrolled: P is static and small, XLA fuses the points' arithmetic
@@ -182,7 +183,7 @@ def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet,
     target = jnp.maximum(-bounce * slots.approach, 0.0)
     error = math.dot(speed, slots.normal) - target
     normal_coupling = coupling.reshape(points, 3, points, 3)[:, 0, :, 0]
-    pushed = slots.active & (normal_multipliers > 0.0) & (jnp.diagonal(normal_coupling) > 0.0)
+    pushed = slots.active & (normal_multipliers > 0.0) & (math.diagonal(normal_coupling) > 0.0)
 
     ceiling = jnp.maximum(error - slots.pushout_speed, 0.0)  # the speed less its depenetration's, over the target
 
@@ -191,7 +192,7 @@ def project_restitution(slots: ContactSlots, world: np.ndarray, bodies: BodySet,
             above = error[i] + normal_coupling[i] @ increment  # the speed now, less the target
             wanted = jnp.clip(above, 0.0, ceiling[i])
             step = (wanted - above) / jnp.where(pushed[i], normal_coupling[i, i], 1.0)
-            increment = increment.at[i].add(jnp.where(pushed[i], step, 0.0))
+            increment = increment + jnp.where((np.arange(points) == i) & pushed[i], step, 0.0)
         return increment, None
 
     start = sharding.varying_like(jnp.zeros(points, error.dtype), error, normal_coupling, ceiling, pushed)

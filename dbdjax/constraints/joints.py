@@ -42,6 +42,7 @@ import numpy as np
 from dbdjax import integrator, math
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
+from dbdjax.indexing import segment_sum, take
 from dbdjax.model import (
     BALL,
     FIXED,
@@ -166,12 +167,13 @@ def targets(
     torque = jnp.zeros((structure.num_joints, 3), dtype)
     inside = np.flatnonzero(structure.torque_in_joint.array)
     if inside.size and gear is not None:
-        push = padded[structure.torque_control.array[inside]] * gear[inside]
+        push = take(padded, structure.torque_control.array[inside]) * gear[inside]
         hinge = np.maximum(structure.torque_dof.array[inside], 0)
-        torque = torque.at[structure.torque_joint.array[inside], hinge].add(push)
+        entry = 3 * structure.torque_joint.array[inside] + hinge  # in torque (J, 3) read flat
+        torque = segment_sum(push, entry, 3 * structure.num_joints).reshape(-1, 3)
     return Targets(
-        drive=padded[structure.joint_drive_control.array],
-        motor=padded[structure.joint_motor_control.array],
+        drive=take(padded, structure.joint_drive_control.array),
+        motor=take(padded, structure.joint_motor_control.array),
         torque=torque,
         rotor=jnp.zeros((structure.num_joints, 3), dtype) if rotor is None else rotor,
         reference=reference,
@@ -205,7 +207,8 @@ def joint_coordinates(model: Model, pos: jnp.ndarray, quat: jnp.ndarray):
         a, b = structure.joint_body_a.array[members], structure.joint_body_b.array[members]
         zero = jnp.zeros((len(a), 3), pos.dtype)
         scalar, matrix = jnp.zeros((len(a),), pos.dtype), jnp.zeros((len(a), 3, 3), pos.dtype)
-        pair = BodyPair(pos[a], pos[b], quat[a], quat[b], scalar, scalar, matrix, matrix, *([zero] * 4),
+        pair = BodyPair(take(pos, a), take(pos, b), take(quat, a), take(quat, b), scalar, scalar, matrix, matrix,
+                        *([zero] * 4),
                         jnp.zeros((len(a), 4, 3), pos.dtype))  # fmt: skip
         joint, flag = jax.tree.map(lambda x: x[members], (model.joints, every_flag))
         return jax.vmap(lambda joint, flag, two: _coordinates(joint, flag, two, kinds))(joint, flag, pair)
@@ -219,7 +222,7 @@ def by_kind(kinds: list[tuple[np.ndarray, frozenset[str]]], compute: Callable):
     results joined in the nodes' order, one pytree."""
     parts = [compute(members, rows) for members, rows in kinds]
     back = np.argsort(np.concatenate([members for members, _ in kinds]))
-    return jax.tree.map(lambda *part: jnp.concatenate(part)[back], *parts)
+    return jax.tree.map(lambda *part: take(jnp.concatenate(part), back), *parts)
 
 
 def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_reference: bool = False):
@@ -238,7 +241,7 @@ def rotor_offsets(model: Model, predicted: State, start: State, h: float, with_r
     before = integrator.displaced_quat(start.quat, -h * start.ang_vel)
     after, now, earlier = (joint_coordinates(model, pos, quat) for pos, quat in (
         (predicted.pos, predicted.quat), (start.pos, start.quat), (start.pos - h * start.vel, before)))  # fmt: skip
-    quat_a = with_world_row(predicted.quat, math.quat_identity().astype(predicted.quat.dtype))[a]
+    quat_a = take(with_world_row(predicted.quat, math.quat_identity().astype(predicted.quat.dtype)), a)
 
     def one(flag, after, now, earlier, quat_a):
         (angle, travel, euler, relative) = zip(after, now, earlier, strict=True)
@@ -304,29 +307,29 @@ def rotor_inertia(model: Model, state: State, on_body_a: bool = True) -> jnp.nda
     n = structure.num_bodies
     a, b = structure.joint_body_a.array, structure.joint_body_b.array
     quat = with_world_row(state.quat, math.quat_identity().astype(state.quat.dtype))
+    quat_a, quat_b = take(quat, a), take(quat, b)
     armature = model.joints.armature
-    axis = math.quat_rotate(quat[b], model.joints.local_axis_b)  # (J, 3)
+    axis = math.quat_rotate(quat_b, model.joints.local_axis_b)  # (J, 3)
     hinge = armature[:, 0, None, None] * axis[:, :, None] * axis[:, None, :]
     added = jnp.where(flag.rotor_hinge[:, None, None], hinge, 0.0)
     eye = jnp.eye(3, dtype=state.quat.dtype)
     added = added + jnp.where(flag.rotor_ball[:, None, None], armature[:, 0, None, None] * eye, 0.0)
     if flag.rotor_euler.any():
-        axes_a = math.quat_rotate(quat[a][:, None], model.joints.local_axes_a)
-        axes_b = math.quat_rotate(quat[b][:, None], model.joints.local_axes_b)
+        axes_a = math.quat_rotate(quat_a[:, None], model.joints.local_axes_a)
+        axes_b = math.quat_rotate(quat_b[:, None], model.joints.local_axes_b)
         _, gradients = math.euler_angles(axes_a, axes_b, flag.universal)  # (J, 3, 3): row k = dq_k/dtheta_b
         euler = jnp.where(flag.rotor_euler, armature, 0.0)
         added = added + jnp.einsum("jk,jki,jkl->jil", euler, gradients, gradients)
-    inertia = jnp.zeros((n + 1, 3, 3), added.dtype).at[b].add(added)
     if on_body_a:
-        inertia = inertia.at[a].add(added)
-    return inertia[:n]
+        return segment_sum(jnp.concatenate([added, added]), np.concatenate([b, a]), n + 1)[:n]
+    return segment_sum(added, b, n + 1)[:n]
 
 
 def padded_control(structure: Structure, control: jnp.ndarray | None, dtype) -> jnp.ndarray:
     """(num_controls + 1,) the control vector (zeros for None) and a last entry 0: the index
     num_controls in the model's control tables reads as "no actuator"."""
     padded = jnp.zeros((structure.num_controls + 1,), dtype)
-    return padded if control is None else padded.at[:-1].set(control)
+    return padded if control is None else jnp.concatenate([jnp.asarray(control, dtype), padded[-1:]])
 
 
 def rows_in_use(structure: Structure) -> frozenset[str]:

@@ -33,11 +33,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import colouring, constraints, integrator, math, sharding
+from dbdjax import colouring, constraints, indexing, integrator, math, sharding
 from dbdjax.collision import ContactSlots
 from dbdjax.colouring import write_back_slots
 from dbdjax.constraints import Family, joints
 from dbdjax.constraints.rows import BodySet
+from dbdjax.indexing import take
 from dbdjax.model import Colour, Model, State, with_world_row
 from dbdjax.solvers import tree, tree_contacts
 
@@ -66,13 +67,13 @@ def body_table(model: Model, state: State, h: float) -> BodySet:
 def _fixed(table: BodySet, index) -> BodySet:
     """The columns of `table` that stay put during the sweeps (all but dx, dtheta), gathered at
     `index` once per solve rather than once per colour and iteration."""
-    return jax.tree.map(lambda column: column[index], table._replace(dx=None, dtheta=None))
+    return jax.tree.map(lambda column: take(column, index), table._replace(dx=None, dtheta=None))
 
 
-def _project(family: Family, fixed: BodySet, dx, dtheta, multipliers):
+def _project(family: Family, fixed: BodySet, dx, dtheta, multipliers, bodies: indexing.Rows):
     """Every node of `family` at once: moved rows (M * S, 3) twice, and new multipliers.
-    fixed: `_fixed(table, family.bodies)`."""
-    bodies = fixed._replace(dx=dx[family.bodies], dtheta=dtheta[family.bodies])  # (M, S, ...)
+    fixed: `_fixed(table, family.bodies)`. bodies: `family.bodies` as the rows of dx it reads."""
+    bodies = fixed._replace(dx=take(dx, bodies), dtheta=take(dtheta, bodies))  # (M, S, ...)
     # Rematerialised in reverse mode: the backward pass recomputes each projection from its inputs
     # instead of keeping its hundreds of small intermediates. Inside the sweeps' scans every kept
     # intermediate is a separate array stacked per colour and iteration (a dynamic-update-slice
@@ -153,6 +154,12 @@ class _Run:
                 for r in range(self.length)
             ]
         )  # (R, N + 1)
+        # The colours' gathers as rows (their transposes sum without scattering): the bodies each
+        # variant's nodes read from dx, dtheta (N + 1, 3), and each body's row read back from the
+        # colour's moved rows followed by dx.
+        self.reads = [indexing.stacked_rows(family.bodies, num_bodies + 1) for family in self.families]
+        moved_rows = sum(int(np.prod(family.bodies.shape[1:])) for family in self.families)
+        self.write_back = indexing.stacked_rows(self.body_slot, moved_rows + num_bodies + 1)
 
 
 class TreeStep(NamedTuple):
@@ -193,17 +200,18 @@ def gauss_seidel(
     present = [_present(colour, families) for colour in colours]
     runs = [_Run(colours, families, first, stop, present[first], n) for first, stop in _runs(present)]
     run_fixed = [[_fixed(table, family.bodies) for family in run.families] for run in runs]
-    start = [[multipliers[f][index] for f, index in zip(run.fs, run.index, strict=True)] for run in runs]
+    start = [[take(multipliers[f], index) for f, index in zip(run.fs, run.index, strict=True)] for run in runs]
 
     def colour(carry, xs, run):
         """One colour: every family of the run projected at once, the moved bodies written back."""
         dx, dtheta = carry
         parts, slot, colour_lams = xs
-        moved = [_project(family._replace(bodies=bodies, params=params, static=static), rows, dx, dtheta, lam)
-                 for family, (bodies, params, static, rows), lam in zip(run.families, parts, colour_lams,
-                                                                        strict=True)]  # fmt: skip
-        dx = jnp.concatenate([m[0] for m in moved] + [dx])[slot]
-        dtheta = jnp.concatenate([m[1] for m in moved] + [dtheta])[slot]
+        moved = [_project(family._replace(params=params, static=static), rows, dx, dtheta, lam, indexing.Rows(*reads))
+                 for family, (params, static, rows, reads), lam in zip(run.families, parts, colour_lams,
+                                                                       strict=True)]  # fmt: skip
+        slot = indexing.Rows(*slot)
+        dx = take(jnp.concatenate([m[0] for m in moved] + [dx]), slot)
+        dtheta = take(jnp.concatenate([m[1] for m in moved] + [dtheta]), slot)
         return (dx, dtheta), [m[2] for m in moved]
 
     def direct_step(carry):
@@ -220,8 +228,9 @@ def gauss_seidel(
         dx, dtheta, lams = carry
         updated = []
         for run, run_lams, fixed in zip(runs, lams, run_fixed, strict=True):
-            parts = [(f.bodies, f.params, f.static, rows) for f, rows in zip(run.families, fixed, strict=True)]
-            xs = (parts, run.body_slot, run_lams)
+            parts = [(f.params, f.static, rows, tuple(reads))
+                     for f, rows, reads in zip(run.families, fixed, run.reads, strict=True)]  # fmt: skip
+            xs = (parts, tuple(run.write_back), run_lams)
             if run.length == 1:  # a colour of its own: no loop
                 (dx, dtheta), new = colour((dx, dtheta), jax.tree.map(lambda x: x[0], xs), run)
                 new = [lam[None] for lam in new]
@@ -240,7 +249,7 @@ def gauss_seidel(
                 for r, nodes in enumerate(run.nodes[k]):
                     order.append(nodes)
                     values.append(run_lams[k][r, : len(nodes)])
-        return jnp.concatenate(values)[np.argsort(np.concatenate(order))] if order else default
+        return take(jnp.concatenate(values), np.argsort(np.concatenate(order))) if order else default
 
     first = sharding.varying_like((table.dx, table.dtheta, start), table, [family.params for family in families])
     (dx, dtheta, lams), _ = jax.lax.scan(iteration, first, jnp.arange(iterations))
@@ -256,6 +265,7 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
     touched = np.concatenate([families[f].bodies.reshape(-1) for f in used])
     share = jnp.asarray(1.0 / np.maximum(np.bincount(touched, minlength=n + 1), 1), table.dx.dtype)[:, None]
     fixed = [_fixed(table, families[f].bodies) for f in used]
+    reads = [indexing.rows(families[f].bodies, n + 1) for f in used]
 
     def direct_step(carry):
         dx, dtheta, lams = carry
@@ -268,11 +278,12 @@ def jacobi(families: list[Family], table: BodySet, iterations: int, multipliers:
 
     def iteration(carry, sweep):
         dx, dtheta, lams = carry
-        moved = [_project(families[f], rows, dx, dtheta, lam) for f, rows, lam in zip(used, fixed, lams, strict=True)]
-        dx_rows = jnp.concatenate([m[0] for m in moved]) - dx[touched]
-        dtheta_rows = jnp.concatenate([m[1] for m in moved]) - dtheta[touched]
-        dx = dx + jax.ops.segment_sum(dx_rows, touched, n + 1) * share
-        dtheta = dtheta + jax.ops.segment_sum(dtheta_rows, touched, n + 1) * share
+        moved = [_project(families[f], rows, dx, dtheta, lam, at)
+                 for f, rows, lam, at in zip(used, fixed, lams, reads, strict=True)]  # fmt: skip
+        dx_rows = jnp.concatenate([m[0] for m in moved]) - take(dx, touched)
+        dtheta_rows = jnp.concatenate([m[1] for m in moved]) - take(dtheta, touched)
+        dx = dx + indexing.segment_sum(dx_rows, touched, n + 1) * share
+        dtheta = dtheta + indexing.segment_sum(dtheta_rows, touched, n + 1) * share
         lams = [m[2] for m in moved]
         if tree_step is not None and tree_step.families[0] in used:
             dx, dtheta, lams = tree_step.after_sweep(sweep, iterations, direct_step, (dx, dtheta, lams))
@@ -378,12 +389,14 @@ def solve(
 
         def residuals(members, rows):
             family = constraints.gather(all_families[0], swept[members])
-            bodies = _fixed(table, family.bodies)._replace(dx=dx[family.bodies], dtheta=dtheta[family.bodies])
+            bodies = _fixed(table, family.bodies)._replace(
+                dx=take(dx, family.bodies), dtheta=take(dtheta, family.bodies)
+            )
 
             def one_joint(params, flag, pair, lam):  # params: (joint, targets), as the joints' family holds them
                 return joints.rotor_excess(params[0], flag, params[1], pair, lam, h, rows)
 
-            return jax.vmap(one_joint)(family.params, family.static, bodies, multipliers[0][swept[members]])
+            return jax.vmap(one_joint)(family.params, family.static, bodies, take(multipliers[0], swept[members]))
 
         excess = joints.by_kind(rotor_kinds(model), residuals)
     return dx[:n], dtheta[:n], normal, excess
