@@ -11,7 +11,7 @@ import pytest
 import scenes
 
 import dbdjax as dbd
-from dbdjax import trailing_batch
+from dbdjax import indexing, trailing_batch
 
 ASSETS = Path(__file__).parent / "assets"
 
@@ -75,6 +75,7 @@ def _every_rule(x, index, flag):
     rows = np.array([2, 0, 3, 3])
     gathered = x[rows] * 2.0  # gather with per-scene indices
     summed = jax.ops.segment_sum(gathered, np.array([0, 1, 1, 2]), 3)  # scatter-add
+    summed = summed + indexing.segment_sum(indexing.take(x, rows), np.array([2, 1, 1, 0]), 3)  # dbdjax's own
     turned = jnp.einsum("ij,kj->ki", jnp.eye(3) + x[:3], summed)  # small dot_general
     stacked = (
         jnp.concatenate([turned, jnp.stack([x[0], x[1]])], axis=0).reshape(5, 3).T

@@ -34,6 +34,7 @@ from dbdjax.collision import ContactSlots
 from dbdjax.constraints import Family
 from dbdjax.constraints import velocity_rows as velocity
 from dbdjax.constraints.rows import BodyPair
+from dbdjax.indexing import segment_sum, take
 from dbdjax.model import Model, State
 from dbdjax.solvers import dbd
 
@@ -76,10 +77,10 @@ def predict(model: Model, state: State, h: float, control: jnp.ndarray | None) -
     torque = jnp.zeros_like(state.pos)
     for group, params in zip(structure.force_groups, model.forces, strict=True):
         bodies = group.bodies.array  # (M, k), no world (add_force refuses it)
-        pieces = (state.pos[bodies], state.quat[bodies], state.vel[bodies], state.ang_vel[bodies])
+        pieces = [take(column, bodies) for column in (state.pos, state.quat, state.vel, state.ang_vel)]
         f, t = jax.vmap(group.function)(*pieces, params)
-        force = force + jax.ops.segment_sum(f.reshape(-1, 3), bodies.reshape(-1), n)
-        torque = torque + jax.ops.segment_sum(t.reshape(-1, 3), bodies.reshape(-1), n)
+        force = force + segment_sum(f.reshape(-1, 3), bodies.reshape(-1), n)
+        torque = torque + segment_sum(t.reshape(-1, 3), bodies.reshape(-1), n)
     rotation = math.quat_to_matrix(state.quat)
     inv_inertia = jnp.einsum("nij,nj,nkj->nik", rotation, 1.0 / model.bodies.inertia, rotation)
     vel = predicted.vel + h * force / model.bodies.mass[:, None]
@@ -113,11 +114,11 @@ def solve(
     for family, lam in zip(families, stored, strict=True):
         lam = jnp.asarray(lam, dtype)
         if len(family.bodies):
-            bodies = jax.tree.map(lambda column, f=family: column[f.bodies], table)  # (M, S, ...)
+            bodies = jax.tree.map(lambda column, f=family: take(column, f.bodies), table)  # (M, S, ...)
             rows, lam, dv, dw = jax.vmap(family.prepare)(family.params, family.static, bodies, lam)
             index = family.bodies.reshape(-1)
-            warm_dv = warm_dv + jax.ops.segment_sum(dv.reshape(-1, 3), index, n + 1)
-            warm_dw = warm_dw + jax.ops.segment_sum(dw.reshape(-1, 3), index, n + 1)
+            warm_dv = warm_dv + segment_sum(dv.reshape(-1, 3), index, n + 1)
+            warm_dw = warm_dw + segment_sum(dw.reshape(-1, 3), index, n + 1)
         else:
             rows = None
         prepared.append(Family(family.name, family.bodies, rows, family.static, family.solve, family.num_impulses,
