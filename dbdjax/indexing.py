@@ -112,8 +112,12 @@ def _summed(x: jnp.ndarray, table) -> jnp.ndarray:
     return total
 
 
-def _taken(x: jnp.ndarray, index, table=None) -> jnp.ndarray:
+def _taken(x: jnp.ndarray, index, table) -> jnp.ndarray:
     return x[index]
+
+
+def _segment_summed(x: jnp.ndarray, table, index) -> jnp.ndarray:
+    return _summed(x, table)
 
 
 _take_p = Primitive("dbdjax_take")  # (x, index, table) -> x[index]
@@ -128,20 +132,17 @@ def _segment_sum_shape(x, table, index) -> ShapedArray:
     return ShapedArray(table.shape[:1] + x.shape[1:], x.dtype, weak_type=x.weak_type)
 
 
-def _take_jvp(primals, tangents):
-    x, index, table = primals
-    out = _take_p.bind(x, index, table)
-    if type(tangents[0]) is ad.Zero:
-        return out, ad.Zero.from_primal_value(out)
-    return out, _take_p.bind(tangents[0], index, table)
+def _linear_jvp(primitive):
+    """Both are linear in x (their first operand) and constant in the indices."""
 
+    def jvp(primals, tangents):
+        x, *indices = primals
+        out = primitive.bind(x, *indices)
+        if type(tangents[0]) is ad.Zero:
+            return out, ad.Zero.from_primal_value(out)
+        return out, primitive.bind(tangents[0], *indices)
 
-def _segment_sum_jvp(primals, tangents):
-    x, table, index = primals
-    out = _segment_sum_p.bind(x, table, index)
-    if type(tangents[0]) is ad.Zero:
-        return out, ad.Zero.from_primal_value(out)
-    return out, _segment_sum_p.bind(tangents[0], table, index)
+    return jvp
 
 
 def _take_transpose(cotangent, x, index, table):
@@ -160,7 +161,7 @@ def _segment_sum_transpose(cotangent, x, table, index):
 def _leading_axis_batcher(primitive, batch_axis_out):
     """The batch of x moved beside the leading axis (the primitives broadcast over the others); a
     batch of indices (not made by dbdjax) by vmap of the written-out form, JAX's own gathers."""
-    written_out = {_take_p: _taken, _segment_sum_p: lambda x, table, index: _summed(x, table)}[primitive]
+    written_out = {_take_p: _taken, _segment_sum_p: _segment_summed}[primitive]
 
     def batched(args, dims):
         (x, first, second), (axis, first_axis, second_axis) = args, dims
@@ -171,15 +172,14 @@ def _leading_axis_batcher(primitive, batch_axis_out):
     return batched
 
 
-for _primitive, _written_out, _shape, _jvp, _transpose, _batch_axis in (
-    (_take_p, _taken, _take_shape, _take_jvp, _take_transpose, lambda index, table: index.ndim),
-    (_segment_sum_p, lambda x, table, index: _summed(x, table), _segment_sum_shape, _segment_sum_jvp,
-     _segment_sum_transpose, lambda table, index: 1),
-):  # fmt: skip
+for _primitive, _written_out, _shape, _transpose, _batch_axis in (
+    (_take_p, _taken, _take_shape, _take_transpose, lambda index, table: index.ndim),
+    (_segment_sum_p, _segment_summed, _segment_sum_shape, _segment_sum_transpose, lambda table, index: 1),
+):
     _primitive.def_abstract_eval(_shape)
     _primitive.def_impl(_written_out)
     mlir.register_lowering(_primitive, mlir.lower_fun(_written_out, multiple_results=False))
-    ad.primitive_jvps[_primitive] = _jvp
+    ad.primitive_jvps[_primitive] = _linear_jvp(_primitive)
     ad.primitive_transposes[_primitive] = _transpose
     batching.primitive_batchers[_primitive] = _leading_axis_batcher(_primitive, _batch_axis)
 
