@@ -70,10 +70,10 @@ def _fixed(table: BodySet, index) -> BodySet:
     return jax.tree.map(lambda column: take(column, index), table._replace(dx=None, dtheta=None))
 
 
-def _project(family: Family, fixed: BodySet, dx, dtheta, multipliers, bodies: indexing.Rows):
+def _project(family: Family, fixed: BodySet, dx, dtheta, multipliers, reads: indexing.Rows):
     """Every node of `family` at once: moved rows (M * S, 3) twice, and new multipliers.
-    fixed: `_fixed(table, family.bodies)`. bodies: `family.bodies` as the rows of dx it reads."""
-    bodies = fixed._replace(dx=take(dx, bodies), dtheta=take(dtheta, bodies))  # (M, S, ...)
+    fixed: `_fixed(table, family.bodies)`. reads: `family.bodies` as the rows of dx it reads."""
+    bodies = fixed._replace(dx=take(dx, reads), dtheta=take(dtheta, reads))  # (M, S, ...)
     # Rematerialised in reverse mode: the backward pass recomputes each projection from its inputs
     # instead of keeping its hundreds of small intermediates. Inside the sweeps' scans every kept
     # intermediate is a separate array stacked per colour and iteration (a dynamic-update-slice
