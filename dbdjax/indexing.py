@@ -75,6 +75,18 @@ def stacked_rows(indices, count: int) -> Rows:
     return Rows(np.stack([r.index for r in each]), np.stack([r.table for r in each]))
 
 
+def added_rows(index, count: int) -> Rows:
+    """`rows` of [0, 1, ..., count - 1] followed by `index` (K,): for `added`."""
+    return rows(np.concatenate([np.arange(count), np.asarray(index).reshape(-1)]), count)
+
+
+def added(x: jnp.ndarray, values: jnp.ndarray, at: Rows) -> jnp.ndarray:
+    """x.at[index].add(values) without the scatter: x (count, ...), values (K, ...), at =
+    `added_rows(index, count)` (or one level of a `stacked_rows` of such). Each row's sum starts
+    from its own value and adds the values at it in the order of k, as the scatter adds them."""
+    return segment_sum(jnp.concatenate([x, values]), at)
+
+
 def take(x: jnp.ndarray, index) -> jnp.ndarray:
     """x[index] along the leading axis: index a numpy integer array (any shape) or `Rows`; shape
     index.shape + x.shape[1:]. Its reverse-mode derivative sums without scattering. A numpy x
@@ -87,11 +99,12 @@ def take(x: jnp.ndarray, index) -> jnp.ndarray:
     return _take_p.bind(x, jnp.asarray(at.index), jnp.asarray(at.table))
 
 
-def segment_sum(x: jnp.ndarray, segments, count: int) -> jnp.ndarray:
+def segment_sum(x: jnp.ndarray, segments, count: int | None = None) -> jnp.ndarray:
     """The rows of x (K, ...) summed by segment: out (count, ...), out[s] = the sum of x[k] over the
-    k with segments[k] == s (a numpy int array (K,), values in [0, count)), in the order of k; zero
-    where a segment has none. `jax.ops.segment_sum` without its scatter."""
-    at = rows(np.asarray(segments).reshape(-1), count)
+    k with segments[k] == s (a numpy int array (K,), values in [0, count); or `Rows` of such an
+    index, whose table gives count), in the order of k; zero where a segment has none.
+    `jax.ops.segment_sum` without its scatter."""
+    at = segments if isinstance(segments, Rows) else rows(np.asarray(segments).reshape(-1), count)
     if at.index.shape[0] != np.shape(x)[0]:
         raise ValueError(f"segment_sum: {at.index.shape[0]} segment ids for {np.shape(x)[0]} rows")
     if not math._unsharded(x):

@@ -71,10 +71,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dbdjax import math, sharding
+from dbdjax import indexing, math, sharding
 from dbdjax.constraints import joints as joint_family
 from dbdjax.constraints import rows as row
 from dbdjax.constraints.rows import BodyPair, BodySet
+from dbdjax.indexing import take
 from dbdjax.model import BALL, FIXED, GIMBAL, HINGE, UNIVERSAL, Model, Structure
 from dbdjax.solvers import tree_contacts
 
@@ -596,27 +597,51 @@ def factor(model: Model, bodies: BodySet, held: jnp.ndarray | None = None, point
         return jnp.concatenate([matrix, jnp.zeros((len(matrix), height - matrix.shape[1], matrix.shape[2]), dtype)], 1)
 
     def eliminate(carry, level):
-        index, packed = level  # carry: D_b (N + 1, 6, 6), the children added so far
+        packed, (child, at_parent) = level  # carry: D_b (N + 1, 6, 6), the children added so far
         jc, jp, alpha = packed[..., :6], packed[..., 6:12], packed[..., 12]
         # Both positive definite up to a skew part (a velocity-dependent inertia, a sliding contact's
         # tilted row): a body's M~ plus what its children add, a joint's rows' effective inverse
         # mass plus their compliance.
-        d_inv = math.gauss_jordan_inverse(carry[index[:, 0]])
+        d_inv = math.gauss_jordan_inverse(take(carry, indexing.Rows(*child)))
         child_products = math.matmul(jc, d_inv)
         s_inv = math.gauss_jordan_inverse(alpha[:, :, None] * eye + math.matmul(child_products, jc, transpose_b=True))
         parent_products = math.matmul(jp, s_inv, transpose_a=True)
-        carry = carry.at[index[:, 1]].add(math.matmul(parent_products, jp))
+        carry = indexing.added(carry, math.matmul(parent_products, jp), indexing.Rows(*at_parent))
         packed = [padded(d_inv), padded(s_inv), padded(child_products), padded(parent_products)]
         return carry, jnp.concatenate(packed, axis=-1)  # (W, max(6, R), 2 (6 + R))
 
-    blocks, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), (indices, matrices))
+    level_rows = _level_rows(indices, world + 1)
+    levels = (matrices, (tuple(level_rows.children), tuple(level_rows.at_parents)))
+    blocks, inverses = jax.lax.scan(eliminate, sharding.varying_like(blocks, blocks, matrices), levels)
     return Factors(indices=indices, joint=joint, empty=empty, roots=roots, matrices=matrices, inverses=inverses,
-                   root_inverses=math.gauss_jordan_inverse(blocks[roots]))  # fmt: skip
+                   root_inverses=math.gauss_jordan_inverse(take(blocks, roots)))  # fmt: skip
+
+
+class _LevelRows(NamedTuple):
+    """Each level's reads and sums of the bodies' rows as `indexing.Rows`, stacked over the levels
+    to scan with them (their transposes sum and gather without scattering)."""
+
+    children: indexing.Rows  # the slots' child bodies
+    parents: indexing.Rows  # their parents
+    at_parents: indexing.Rows  # `indexing.added` at the parents: `.at[parent].add` in its order
+    at_children: indexing.Rows  # `indexing.added` at the children
+
+
+def _level_rows(indices: np.ndarray, count: int) -> _LevelRows:
+    """`_LevelRows` of the level slots' (L, W, 2) [child, parent] bodies among `count` rows."""
+    child, parent = indices[..., 0], indices[..., 1]
+    own = np.arange(count)
+    return _LevelRows(
+        indexing.stacked_rows(child, count),
+        indexing.stacked_rows(parent, count),
+        indexing.stacked_rows([np.concatenate([own, level]) for level in parent], count),
+        indexing.stacked_rows([np.concatenate([own, level]) for level in child], count),
+    )
 
 
 def _slot_rows(factors: Factors, rows: jnp.ndarray) -> jnp.ndarray:
     """(L, W, R) each level slot's part of a per-joint row array (J, R) (0 in empty slots)."""
-    return jnp.where(factors.empty[..., None], 0.0, rows[factors.joint])
+    return jnp.where(factors.empty[..., None], 0.0, take(rows, factors.joint))
 
 
 def _joint_rows(factors: Factors, slots: jnp.ndarray, num_joints: int) -> jnp.ndarray:
@@ -625,7 +650,7 @@ def _joint_rows(factors: Factors, slots: jnp.ndarray, num_joints: int) -> jnp.nd
     in_tree = np.zeros(num_joints, bool)
     real = np.flatnonzero(~factors.empty.reshape(-1))
     slot[factors.joint.reshape(-1)[real]], in_tree[factors.joint.reshape(-1)[real]] = real, True
-    gathered = slots.reshape((-1,) + slots.shape[2:])[slot]
+    gathered = take(slots.reshape((-1,) + slots.shape[2:]), slot)
     return jnp.where(in_tree.reshape((-1,) + (1,) * (gathered.ndim - 1)), gathered, 0.0)
 
 
@@ -636,31 +661,36 @@ def _eliminate_and_substitute(factors: Factors, gap: jnp.ndarray, start: jnp.nda
     (N + 1, 6) and each slot's multiplier step (L, W, R)."""
     rows = factors.matrices.shape[-2]
 
+    level_rows = _level_rows(factors.indices, start.shape[0])
+
     def eliminate(z, level):
-        index, inverse, c = level  # z: (N + 1, 6), what the children added so far
+        inverse, c, (child, at_parent) = level  # z: (N + 1, 6), what the children added so far
         _, _, child_products, parent_products = _inverses(inverse, rows)
-        z_body = z[index[:, 0]]
+        z_body = take(z, indexing.Rows(*child))
         z_joint = -c - _mv(child_products, z_body)
-        z = z.at[index[:, 1]].add(_mv(parent_products, z_joint))
+        z = indexing.added(z, _mv(parent_products, z_joint), indexing.Rows(*at_parent))
         return z, jnp.concatenate([z_body, z_joint], axis=-1)  # (W, 6 + R)
 
-    levels = (factors.indices, factors.inverses, gap)
-    z, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[1:]), levels)
+    levels = (factors.inverses, gap, (tuple(level_rows.children), tuple(level_rows.at_parents)))
+    z, right = jax.lax.scan(eliminate, sharding.varying_like(start, start, levels[:2]), levels)
     # The floating roots (no joint): dX_root = D_root^-1 z_root, where the levels' substitution starts.
     x = jnp.zeros_like(start)
     if len(factors.roots):
-        x = x.at[factors.roots].set(_mv(factors.root_inverses, z[factors.roots]))
+        x = indexing.segment_sum(_mv(factors.root_inverses, take(z, factors.roots)), factors.roots, len(x))
 
     def substitute(x, level):
-        index, packed, inverse, z = level
+        packed, inverse, z, empty, (parent, at_child) = level
         jc, jp = packed[..., :6], packed[..., 6:12]
         d_inv, s_inv, _, _ = _inverses(inverse, rows)
-        kappa = _mv(s_inv, z[:, 6:] - _mv(jp, x[index[:, 1]]))
-        x = x.at[index[:, 0]].set(_mv(d_inv, z[:, :6] + _transposed_mv(jc, kappa)))
-        return x, kappa
+        kappa = _mv(s_inv, z[:, 6:] - _mv(jp, take(x, indexing.Rows(*parent))))
+        # Each body is one level's child once, its row still 0: added, as set. Empty slots' (the
+        # world's) add nothing, so the world stays put.
+        moved = jnp.where(empty[:, None], 0.0, _mv(d_inv, z[:, :6] + _transposed_mv(jc, kappa)))
+        return indexing.added(x, moved, indexing.Rows(*at_child)), kappa
 
-    levels = (factors.indices, factors.matrices, factors.inverses, right)
-    return jax.lax.scan(substitute, sharding.varying_like(x, levels[1:]), levels, reverse=True)
+    levels = (factors.matrices, factors.inverses, right, factors.empty,
+              (tuple(level_rows.parents), tuple(level_rows.at_children)))  # fmt: skip
+    return jax.lax.scan(substitute, sharding.varying_like(x, levels[:3]), levels, reverse=True)
 
 
 def solve(model: Model, factors: Factors, bodies: BodySet, multipliers: jnp.ndarray | None = None, points=None,

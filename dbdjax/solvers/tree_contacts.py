@@ -49,6 +49,7 @@ import numpy as np
 from dbdjax import integrator, math
 from dbdjax.constraints import contacts as contact_family
 from dbdjax.constraints.rows import BodySet
+from dbdjax.indexing import segment_sum
 from dbdjax.model import Model, with_world_row
 
 # The regularisation of a contact row, alpha = 1 / (HOLD m) with m its body's mass: the row then
@@ -233,13 +234,13 @@ def added_blocks(rows: ContactRows, num_bodies: int) -> jnp.ndarray:
     row's push (J, or tilted by a sliding point's friction: then the block is not symmetric)."""
     weight = jnp.where(rows.on, 1.0 / rows.compliance, 0.0)  # (R,)
     block = weight[:, None, None] * rows.push[:, :, None] * rows.jacobian[:, None, :]
-    return jnp.zeros((num_bodies + 1, 6, 6), block.dtype).at[rows.body].add(block)
+    return segment_sum(block, rows.body, num_bodies + 1)
 
 
 def added_right_sides(rows: ContactRows, num_bodies: int) -> jnp.ndarray:
     """(N + 1, 6) what the rows that are on add to their bodies' right-hand sides z: sum P^T alpha^-1 (-r)."""
     right = jnp.where(rows.on, -rows.residual / rows.compliance, 0.0)[:, None] * rows.push
-    return jnp.zeros((num_bodies + 1, 6), right.dtype).at[rows.body].add(right)
+    return segment_sum(right, rows.body, num_bodies + 1)
 
 
 def row_moves(rows: ContactRows, step: jnp.ndarray) -> jnp.ndarray:
@@ -364,7 +365,7 @@ def sticking(settled: Settled) -> Settled:
 
 def applied(rows: ContactRows, load: jnp.ndarray, num_bodies: int) -> jnp.ndarray:
     """(N + 1, 6) the force and torque J^T load that the rows' loads (R,) put on their bodies."""
-    return jnp.zeros((num_bodies + 1, 6), load.dtype).at[rows.body].add(load[:, None] * rows.jacobian)
+    return segment_sum(load[:, None] * rows.jacobian, rows.body, num_bodies + 1)
 
 
 def increments(touching: Touching, steps: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
