@@ -57,6 +57,23 @@ def test_their_gradients_hold_no_scatter():
     assert any("scatter" in name for name in primitives(jaxs))
 
 
+def test_added_is_at_index_add_to_the_bit_and_in_derivative(float64):
+    """`added`: x.at[index].add(values) (each row's own value first, then the values in order)."""
+    rng = np.random.default_rng(5)
+    x, values = jnp.asarray(rng.normal(size=(5, 3))), jnp.asarray(rng.normal(size=(6, 3)) * 1e3)
+    index = np.array([4, 1, 4, 0, 4, 1])
+    at = indexing.added_rows(index, 5)
+    np.testing.assert_array_equal(indexing.added(x, values, at), x.at[index].add(values))
+
+    def loss(add):
+        return lambda x, v: jnp.sum(jnp.sin(add(x, v)) ** 2)
+
+    mine = loss(lambda x, v: indexing.added(x, v, at))
+    theirs = loss(lambda x, v: x.at[index].add(v))
+    for mine_d, theirs_d in zip(jax.grad(mine, (0, 1))(x, values), jax.grad(theirs, (0, 1))(x, values), strict=True):
+        np.testing.assert_allclose(mine_d, theirs_d, rtol=1e-12, atol=1e-12)
+
+
 def test_rows_scanned_per_iteration_give_jaxs_values_and_gradients(float64):
     """`stacked_rows`: one set of rows per iteration of a lax.scan (the solver's colours), as traced
     arrays, with the tables their transposes need."""
