@@ -8,6 +8,7 @@ pushes), and the mean per-episode gain must exceed three standard errors of the 
 gains (a paired t statistic above 3: the improvement is not evaluation noise)."""
 
 import argparse
+import functools
 import json
 import time
 import types
@@ -471,8 +472,12 @@ def test_the_kept_policy_is_the_moving_average_of_the_trained_ones_and_the_train
         for _ in range(4):
             states.append(iteration(states[-1], np.float32(0.5))[0])
         runs[weight] = states
+    # The two runs are two compiled programs: the same arithmetic, but XLA may round the env's step
+    # differently in each (since session 67's indexing change, 2 of the 5 entries of a layer 2e-7
+    # apart after 4 iterations, the rest equal), so equal to float32 rounding, not to the bit.
+    same = functools.partial(np.testing.assert_allclose, rtol=1e-6, atol=1e-9)
     for plain, averaged in zip(runs[0.0], runs[0.75], strict=True):
-        jax.tree.map(np.testing.assert_array_equal, plain.params, averaged.params)
+        jax.tree.map(same, plain.params, averaged.params)
     np.testing.assert_array_equal(ppo.export_params(runs[0.0][-1])["policy"][-1]["w"],
                                   np.asarray(runs[0.0][-1].params["policy"][-1]["w"]))  # fmt: skip
 

@@ -229,18 +229,26 @@ def contact_rows(model: Model, bodies: BodySet, touching: Touching, tree_bodies:
     )
 
 
+def _per_body(values: jnp.ndarray, body, count: int) -> jnp.ndarray:
+    """values (R, ...) summed per body (count, ...): without a scatter where `body` is known when
+    tracing (`indexing.segment_sum`), as a scatter where the rows came through a jit as arguments."""
+    if isinstance(body, np.ndarray):
+        return segment_sum(values, body, count)
+    return jnp.zeros((count,) + values.shape[1:], values.dtype).at[body].add(values)
+
+
 def added_blocks(rows: ContactRows, num_bodies: int) -> jnp.ndarray:
     """(N + 1, 6, 6) what the rows that are on add to their bodies' blocks: sum P^T alpha^-1 J, P the
     row's push (J, or tilted by a sliding point's friction: then the block is not symmetric)."""
     weight = jnp.where(rows.on, 1.0 / rows.compliance, 0.0)  # (R,)
     block = weight[:, None, None] * rows.push[:, :, None] * rows.jacobian[:, None, :]
-    return segment_sum(block, rows.body, num_bodies + 1)
+    return _per_body(block, rows.body, num_bodies + 1)
 
 
 def added_right_sides(rows: ContactRows, num_bodies: int) -> jnp.ndarray:
     """(N + 1, 6) what the rows that are on add to their bodies' right-hand sides z: sum P^T alpha^-1 (-r)."""
     right = jnp.where(rows.on, -rows.residual / rows.compliance, 0.0)[:, None] * rows.push
-    return segment_sum(right, rows.body, num_bodies + 1)
+    return _per_body(right, rows.body, num_bodies + 1)
 
 
 def row_moves(rows: ContactRows, step: jnp.ndarray) -> jnp.ndarray:
@@ -365,7 +373,7 @@ def sticking(settled: Settled) -> Settled:
 
 def applied(rows: ContactRows, load: jnp.ndarray, num_bodies: int) -> jnp.ndarray:
     """(N + 1, 6) the force and torque J^T load that the rows' loads (R,) put on their bodies."""
-    return segment_sum(load[:, None] * rows.jacobian, rows.body, num_bodies + 1)
+    return _per_body(load[:, None] * rows.jacobian, rows.body, num_bodies + 1)
 
 
 def increments(touching: Touching, steps: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
