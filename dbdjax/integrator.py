@@ -87,7 +87,9 @@ def implicit_gyroscopic(inertia: jnp.ndarray, ang_vel: jnp.ndarray, h: float) ->
     """
     moment = inertia * ang_vel
     residual = h * math.cross(ang_vel, moment)
-    jacobian = inertia[..., None, :] * jnp.eye(3, dtype=inertia.dtype) + h * (  # diag(I): no gather to transpose
+    # diag(I) as jnp.diag builds it, a select (no gather): as the product I * eye, XLA rounded the
+    # sum below differently in two programs holding the same step (session 68).
+    jacobian = jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(inertia) + h * (
         math.skew(ang_vel) * inertia[..., None, :] - math.skew(moment)
     )
     return ang_vel - math.matvec(math.inverse3(jacobian), residual)

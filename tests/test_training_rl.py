@@ -8,7 +8,6 @@ pushes), and the mean per-episode gain must exceed three standard errors of the 
 gains (a paired t statistic above 3: the improvement is not evaluation noise)."""
 
 import argparse
-import functools
 import json
 import time
 import types
@@ -472,13 +471,8 @@ def test_the_kept_policy_is_the_moving_average_of_the_trained_ones_and_the_train
         for _ in range(4):
             states.append(iteration(states[-1], np.float32(0.5))[0])
         runs[weight] = states
-    # The two runs are two compiled programs: the same arithmetic, but XLA rounds the env's step
-    # differently in each since session 67's indexing change (the largest relative difference of
-    # any parameter 4e-5 after the first iteration, 1.3e-3 after the fourth, as the rollouts drift
-    # apart; to the bit before it), so the training is compared to that drift, not to the bit.
-    same = functools.partial(np.testing.assert_allclose, rtol=2e-3, atol=1e-7)
     for plain, averaged in zip(runs[0.0], runs[0.75], strict=True):
-        jax.tree.map(same, plain.params, averaged.params)
+        jax.tree.map(np.testing.assert_array_equal, plain.params, averaged.params)
     np.testing.assert_array_equal(ppo.export_params(runs[0.0][-1])["policy"][-1]["w"],
                                   np.asarray(runs[0.0][-1].params["policy"][-1]["w"]))  # fmt: skip
 
