@@ -92,9 +92,8 @@ def take(x: jnp.ndarray, index) -> jnp.ndarray:
     index.shape + x.shape[1:]. Its reverse-mode derivative sums without scattering. A numpy x
     with a numpy index gives a numpy array (a constant stays one)."""
     at = index if isinstance(index, Rows) else rows(index, np.shape(x)[0])
-    if isinstance(x, np.ndarray) and isinstance(at.index, np.ndarray):  # numpy in, numpy out
-        return x[at.index]
-    if not math._unsharded(x):
+    numpy_in = isinstance(x, np.ndarray) and isinstance(at.index, np.ndarray)  # numpy out
+    if numpy_in or not math._unsharded(x):
         return x[at.index]
     return _take_p.bind(x, jnp.asarray(at.index), jnp.asarray(at.table))
 

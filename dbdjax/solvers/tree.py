@@ -232,7 +232,7 @@ def point_gaps(model: Model, bodies: BodySet) -> tuple[jnp.ndarray, jnp.ndarray,
     """
     structure = model.structure
     ends = np.stack([structure.joint_body_a.array, structure.joint_body_b.array], axis=-1)  # (J, 2)
-    pairs = jax.tree.map(lambda column: column[ends], bodies)
+    pairs = jax.tree.map(lambda column: take(column, ends), bodies)
 
     def one(joint, flag, two):
         pair = BodyPair.of(two)
@@ -351,19 +351,23 @@ def angular_rows(model: Model, bodies: BodySet, multipliers: jnp.ndarray | None,
 
     def measured(groups, measure):
         """measure(joint, flags, target, pair, kind, traced) per group, on its own joints only (no
-        angle of a joint without those axes): each output (J, 3, ...) with zeros elsewhere."""
-        found = None
+        angle of a joint without those axes): each output (J, 3, ...) with zeros elsewhere, read
+        from the groups' outputs stacked over a row of zeros (`take`: no scatter, nor one in the
+        gradient; a joint in two groups reads the last one's, as `.at[members].set` in turn did)."""
+        outputs, reads, count = [], np.full(num_joints, -1), 0
         for kind, traced, rows in groups:
             members = np.flatnonzero(rows.any(axis=1))
-            pick = lambda x, members=members: x[members]  # noqa: E731
-            pairs = jax.tree.map(lambda column, members=members: column[ends[members]], bodies)
+            pick = lambda x, members=members: take(x, members)  # noqa: E731
+            pairs = jax.tree.map(lambda column, members=members: take(column, ends[members]), bodies)
             one = lambda j, f, t, two, kind=kind, traced=traced: measure(j, f, t, BodyPair.of(two), kind, traced)  # noqa: E731
-            values = jax.vmap(one)(jax.tree.map(pick, model.joints), jax.tree.map(pick, flag),
-                                   jax.tree.map(pick, targets), pairs)  # fmt: skip
-            if found is None:
-                found = [jnp.zeros((num_joints,) + v.shape[1:], v.dtype) for v in values]
-            found = [f.at[members].set(v) for f, v in zip(found, values, strict=True)]
-        return found
+            outputs.append(jax.vmap(one)(jax.tree.map(pick, model.joints), jax.tree.map(pick, flag),
+                                         jax.tree.map(pick, targets), pairs))  # fmt: skip
+            reads[members] = count + np.arange(len(members))
+            count += len(members)
+        reads[reads < 0] = count  # the row of zeros
+        stacked = (jnp.concatenate([*column, jnp.zeros((1,) + column[0].shape[1:], column[0].dtype)])
+                   for column in zip(*outputs, strict=True))  # fmt: skip
+        return [take(column, reads) for column in stacked]
 
     parts = []  # (on, directions, compliance, residual) per block of three rows
     springs = []  # the same, per kind of spring row, merged into one block below
