@@ -63,7 +63,7 @@ def measure(root: Path, model: str, solver: str) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkouts", nargs="+", type=Path, required=True, help="dbdjax trees to compare")
+    parser.add_argument("--checkouts", nargs="+", type=Path, default=[], help="dbdjax trees to compare")
     parser.add_argument("--model", default="humanoid", choices=["humanoid", "ant"])
     parser.add_argument("--solver", default="dbd", help="brax_comparison.dbdjax_engine's solver")
     parser.add_argument("--rounds", type=int, default=2)
@@ -74,15 +74,17 @@ def main() -> None:
     if args.child:
         print(json.dumps(measure(args.child, args.model, args.solver)))
         return
+    if not args.checkouts:
+        parser.error("--checkouts: name at least one dbdjax tree")
     runs = []
     for round_ in range(args.rounds):
         for root in args.checkouts:
             command = [sys.executable, __file__, "--child", str(root.resolve()), "--model", args.model,
                        "--solver", args.solver]  # fmt: skip
             load = os.getloadavg()[0]
-            output = subprocess.run(
-                command, check=True, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": ""}
-            )
+            output = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": ""})
+            if output.returncode:
+                raise SystemExit(f"{root}: the measuring process failed:\n{output.stderr[-3000:]}")
             row = {"checkout": str(root), "round": round_, "load_average": round(load, 2),
                    **json.loads(output.stdout.strip().splitlines()[-1])}  # fmt: skip
             print(row, flush=True)
