@@ -7,8 +7,11 @@ Each checkout is measured in a child process of its own, the checkouts in turn, 
 so that a slow spell of this shared machine falls on both (the 2-core machine's compile times
 move 1.8-2.4x from run to run: compare within a run).
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/grad_compile_paired.py --checkouts DIR . \\
-        --rounds 2 --out benchmarks/results/grad_compile_paired_session68.json
+    .venv/bin/python benchmarks/grad_compile_paired.py --checkouts DIR . --rounds 1 \\
+        --out benchmarks/results/grad_compile_paired_session68.json
+
+(The children run with PYTHONPATH emptied: each imports its checkout's dbdjax alone.) The grad
+is compiled twice in each child, by `compile_times` and again to time its two parts apart.
 
 DIR: an earlier commit's tree (`git archive <commit> | tar -x -C DIR`, its benchmarks/ and
 tests/assets/ included).
