@@ -119,6 +119,7 @@ def test_even_colouring_keeps_each_bodys_order_on_random_graphs():
     assert evened > 20  # the random graphs do exercise the evening
 
 
+@pytest.mark.slow
 def test_the_ant_steps_alike_with_even_and_greedy_colours(monkeypatch):
     """Evening the colours keeps every body's projection order, so the sweep computes the same."""
     control = 0.4 * np.sin(np.arange(20)[:, None] + np.arange(8)[None, :])

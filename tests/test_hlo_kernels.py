@@ -40,6 +40,17 @@ def test_kernels_in_a_loop_count_once_per_trip_and_name_their_source_line(hlo_ke
     assert counted[7] * 3 == counted[3] * 7
 
 
+def test_a_functions_kernels_include_those_of_the_functions_it_calls(hlo_kernels, tmp_path):
+    """`per_function` counts a kernel for every function on its stack: the loop body's kernels are
+    f's too, once each, however many of f's lines the stack passes through."""
+    result = hlo_kernels.count(_dumped(tmp_path, 3), steps=1, within="program_3.py")
+    per_function = result["per_function"]
+    body = per_function["program_3.py f.<locals>.body"]
+    assert body == result["per_source_line"][f"program_3.py:{KERNELS_LINE} f.<locals>.body"] >= 2 * 3
+    assert per_function["program_3.py f"] >= body
+    assert per_function["program_3.py f"] == result["kernels_per_step"] - result["per_source_line"].get("(outside)", 0)
+
+
 HELPER = """
 import jax.numpy as jnp
 def wave(c):

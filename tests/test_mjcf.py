@@ -1,6 +1,7 @@
 """MJCF import: the Brax models load and run, unsupported elements are refused by name, and small
 chains follow MuJoCo's own mj_step."""
 
+import itertools
 import math
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from ci_cases import slow_except
 
 import dbdjax as dbd
 from dbdjax import diagnostics
@@ -105,6 +107,7 @@ def _dropped_ant(**finalize):
     return model, start, trajectory, energy, rotors
 
 
+@pytest.mark.slow
 def test_point_sweeps_close_the_joints_the_whole_joint_sweeps_leave_open():
     # Brax's ant 5 m up (its ankles' ranges widened to hold the build pose, as `_dropped_ant`), 10
     # steps of uniform random control at 1 x 4 (brax_comparison's setting): each joint's rows move
@@ -139,6 +142,7 @@ def test_dropped_ant_with_armature_gains_no_energy_at_four_substeps():
     assert float(jnp.max(diagnostics.joint_gaps(model, trajectory))) < 0.02
 
 
+@pytest.mark.slow
 def test_dropped_ant_under_the_impulse_solver_keeps_its_rotors_from_spinning_up():
     # The same drop under the impulse solver: its sweeps left the heavy rotor rows unconverged
     # beside the feet's contacts as the DBD sweeps did, and the rotors took 773 J by step 76 at
@@ -180,6 +184,7 @@ def test_dropped_ant_on_the_impulse_solver_gains_no_energy_at_one_or_four_subste
     assert gaps.max() < 0.01
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["dbd", "impulse"])
 def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced(float64, monkeypatch, solver):
     """The rotor residuals and the rotor pass trace each kind of joint with its own rows
@@ -203,6 +208,7 @@ def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced
         np.testing.assert_allclose(np.asarray(ours), np.asarray(reference), rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_joint_coordinates_kind_by_kind_are_those_measured_with_every_row(float64, monkeypatch):
     """`joints.joint_coordinates` (the rotor rows' offsets and references, the rotors' energy)
     measures each kind of joint with its own rows; on a bent humanoid its hinge and gimbal angles
@@ -493,7 +499,12 @@ def _gap_to_mujoco(name: str, dt: float, solver: str = "dbd") -> float:
     return float(np.max(np.abs(ours - np.array(coordinates))))
 
 
-@pytest.mark.parametrize("name", list(SCENES))
+# Slow (`make test-slow`): the armature on a slider and a gimbal (the hinge's and ball's stay in
+# `make test`, the cartpole's slider too) and the servo (`test_a_saturated_position_servo_...`).
+SLOW_SCENES = ("slide_armature", "gimbal_armature", "servo")
+
+
+@pytest.mark.parametrize("name", slow_except(list(SCENES), kept=[n for n in SCENES if n not in SLOW_SCENES]))
 def test_chain_follows_mujoco_within_the_measured_first_order_gap(float64, name):
     assert _gap_to_mujoco(name, 1e-3) < SCENES[name][3]
 
@@ -504,7 +515,7 @@ IMPULSE_GAPS = {"universal": 6.5e-4, "gimbal_driven": 1.05e-2, "universal_chain"
                 "slide_armature": 2.3e-3, "ball_armature": 4.2e-3}  # fmt: skip
 
 
-@pytest.mark.parametrize("name", list(IMPULSE_GAPS))
+@pytest.mark.parametrize("name", slow_except(list(IMPULSE_GAPS), kept=["universal", "gimbal_driven"]))
 def test_impulse_solver_follows_mujoco_on_universal_gimbal_and_armature_chains(float64, name):
     assert _gap_to_mujoco(name, 1e-3, solver="impulse") < IMPULSE_GAPS[name]
 
@@ -611,9 +622,12 @@ def _light_leg_after_a_tenth_of_a_second(free: bool, joint: str, solver: str, it
     return ours, d, len(spin), 1 if joint == "hinge" else 4  # the ball's qpos: its quaternion
 
 
-@pytest.mark.parametrize("solver", ["dbd", "impulse"])
-@pytest.mark.parametrize("joint", ["hinge", "ball"])
-@pytest.mark.parametrize("free", [False, True])
+# In `make test`: the DBD hinge on a fixed base and the DBD ball on a free one.
+@pytest.mark.parametrize(
+    ("free", "joint", "solver"),
+    slow_except(list(itertools.product([False, True], ["hinge", "ball"], ["dbd", "impulse"])),
+                kept=[(False, "hinge", "dbd"), (True, "ball", "dbd")]),
+)  # fmt: skip
 def test_a_light_leg_with_a_rotor_and_damping_slows_as_in_mujoco_at_four_iterations(float64, free, joint, solver):
     # The rotor's time constant armature / damping is 1 s: from 2 rad/s MuJoCo's hinge is at 1.81
     # rad/s after 0.1 s. With the drive's damping row and the rotor row stepped one after the other
@@ -639,8 +653,10 @@ def test_a_light_leg_with_a_rotor_and_damping_slows_as_in_mujoco_at_four_iterati
     assert np.max(np.abs(ours.qpos[-coordinates:] - d.qpos[-coordinates:])) < (4e-5 if ball else 1e-5)
 
 
-@pytest.mark.parametrize("joint", ["hinge", "ball"])
-@pytest.mark.parametrize("free", [False, True])
+@pytest.mark.parametrize(
+    ("free", "joint"),
+    slow_except(list(itertools.product([False, True], ["hinge", "ball"])), kept=[(False, "hinge")]),
+)
 def test_one_impulse_sweep_slows_a_light_leg_with_a_rotor_and_damping_as_in_mujoco(float64, free, joint):
     # With the drive stepped beside its rotor as one block, one sweep a step leaves the leg 2.9e-6
     # (held hinge), 3.0e-5 (free hinge), 1.7e-4 and 6.7e-4 rad/s (held and free ball) from MuJoCo.
@@ -652,7 +668,7 @@ def test_one_impulse_sweep_slows_a_light_leg_with_a_rotor_and_damping_as_in_mujo
     assert np.max(np.abs(ours.qvel[-speeds:] - d.qvel[-speeds:])) < (1e-4 if joint == "hinge" else 1e-3)
 
 
-@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+@pytest.mark.parametrize("solver", slow_except(["dbd", "impulse"], kept=["dbd"]))
 def test_brax_ant_in_the_air_follows_mujoco_at_four_iterations(float64, solver):
     # Brax's ant (joint damping 1, armature 1 on every hinge) 5 m up, its hinges in the middle half
     # of their ranges, random velocities, 0.1 s at dt = 1 ms: the largest hinge angle gap to
@@ -685,7 +701,7 @@ def test_brax_ant_in_the_air_follows_mujoco_at_four_iterations(float64, solver):
     assert gap < 0.005, gap
 
 
-@pytest.mark.parametrize("solver", ["dbd", "impulse"])
+@pytest.mark.parametrize("solver", slow_except(["dbd", "impulse"], kept=["dbd"]))
 def test_a_saturated_position_servo_beside_a_rotor_turns_a_light_hinge_as_in_mujoco(float64, solver):
     # The drive's step clamped to its bound (a position actuator's forcerange) and the rotor's taken
     # given the clamped one (`rows.spring_row_beside_rotor`): the light leg of

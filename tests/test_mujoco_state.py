@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from ci_cases import slow_except
 from test_mjcf import SCENES  # small chains: slides, balls, universal and gimbal joints, armature
 
 import dbdjax as dbd
@@ -60,7 +61,7 @@ def test_a_mujoco_state_carried_to_dbdjax_and_back_is_the_same_qpos_and_qvel(nam
     np.testing.assert_allclose(back.qvel, d.qvel, atol=2e-6)
 
 
-@pytest.mark.parametrize("name", list(MODELS))
+@pytest.mark.parametrize("name", slow_except(list(MODELS), kept=["humanoid", "half_cheetah", "ragdoll"]))
 def test_dbdjax_counts_the_energy_of_a_mujoco_state_as_mujoco_does(float64, name):
     # The bodies' kinetic energy at their centres, their rotors' (armature: 1/2 a qdot^2 per dof,
     # `diagnostics.rotor_energy`, with qdot read from the bodies) and gravity's potential: equal to

@@ -262,6 +262,7 @@ def test_pose_control_drives_the_standing_doll_to_the_pose(standing):
     assert np.abs(pelvis[:, 2] - doll.rest_height).max() < 0.02  # still standing
 
 
+@pytest.mark.slow
 def test_over_relaxed_joints_hold_the_leaning_doll_at_half_the_sweeps():
     """DBD 4.2's successive over-relaxation (1 < xi < 2) on the doll's joints: at 4 substeps x 4
     iterations, ankles driven to a 0.036 rad forward lean ramped in over 1 s, the ankles sag to

@@ -29,6 +29,7 @@ def _largest_difference(a, b) -> float:
     return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("float64")
 def test_dbd_vmap_steps_brax_humanoid_as_jax_vmap_does():
     model = dbd.load_mjcf(ASSETS / "humanoid.xml", substeps=1, iterations=4)
@@ -42,6 +43,7 @@ def test_dbd_vmap_steps_brax_humanoid_as_jax_vmap_does():
     assert _largest_difference(got, expected) < 1e-10
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("float64")
 def test_dbd_vmap_steps_a_falling_ragdoll_with_contacts_and_drives_as_jax_vmap_does():
     model = scenes.ragdoll(height=0.75, drives=True, dt=1 / 60, substeps=2, iterations=4)
@@ -53,6 +55,7 @@ def test_dbd_vmap_steps_a_falling_ragdoll_with_contacts_and_drives_as_jax_vmap_d
     assert _largest_difference(got, expected) < 1e-9
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("float64")
 def test_dbd_vmap_gradient_is_jax_vmaps():
     model = scenes.mixed_tree()

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from ci_cases import slow_except
 from cli import help_text
 
 from dbdjax.envs import IKChainReach, RagdollStand
@@ -204,6 +205,7 @@ def test_untrained_policy_acts_the_home_pose(stand):
     np.testing.assert_array_equal(np.asarray(action), np.broadcast_to(np.asarray(home), action.shape))
 
 
+@pytest.mark.slow
 def test_an_episode_that_falls_on_its_last_step_is_not_counted_as_survived():
     """rl.evaluate's "survived" is whether an episode reached its last step without terminating: one
     cut short to end on the step its fall terminates has that length and did not survive."""
@@ -491,7 +493,7 @@ def test_the_kept_policy_is_the_moving_average_of_the_trained_ones_and_the_train
         ppo.train(task, ppo.PPOConfig(num_envs=4, unroll_length=4, policy_average=1.0), total_steps=16)
 
 
-@pytest.mark.parametrize("desired_kl", [None, 0.02])
+@pytest.mark.parametrize("desired_kl", slow_except([None, 0.02], kept=[None]))
 def test_an_annealed_update_is_the_plain_one_scaled_and_the_kl_rule_does_not_undo_it(desired_kl):
     """PPOConfig.final_step_scale s: at a fraction f of the run every update is (1 - (1 - s) f) times
     the unannealed one; with the KL-adaptive rate the rule takes the same decisions as without

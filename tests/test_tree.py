@@ -181,6 +181,7 @@ def test_tree_guess_is_the_exact_solution_of_the_linearised_point_constraints(fl
     np.testing.assert_allclose(kappa[[5, 7]], 0.0)  # loop and slider: left to the iterations
 
 
+@pytest.mark.slow
 def test_tree_guess_is_exact_with_the_floating_roots_taken_after_the_levels(float64):
     # With body 0 floating, the schedule's last level holds floating roots alone: they are
     # eliminated after the levels' scan, not as a level of it (`tree._slots`).
@@ -286,6 +287,7 @@ def test_tree_solve_moves_where_the_sweeps_converge_only_at_second_order(float64
     assert differences[1] < 0.3 * differences[0]
 
 
+@pytest.mark.slow
 def test_tree_solve_holds_a_whipping_chain_at_one_substep():
     # 20 links at dt = 1/30 with one substep of 10 sweeps: the sweeps alone open the joints by
     # 170 mm as the free end whips (8 substeps: 2.8 mm); the direct solve after each sweep keeps
@@ -397,6 +399,7 @@ def _substep_parts(model, state):
     return dbd_solver.body_table(model, predicted, h), families, h
 
 
+@pytest.mark.slow
 def test_direct_solve_of_whole_joints_is_a_newton_step_the_sweeps_agree_with(float64):
     # Brax's ant at its third step (every hinge's armature 1, ankles past their soft limits): the
     # direct solve of every joint's point, axle alignment, rotor and active limit is exact for the
@@ -434,6 +437,7 @@ def test_direct_solve_of_whole_joints_is_a_newton_step_the_sweeps_agree_with(flo
     assert float(jnp.max(jnp.abs(dtheta - table.dtheta))) < 1e-4  # measured 1.4e-5 rad (3.5e-2 without the locks)
 
 
+@pytest.mark.slow
 def test_the_tree_solves_joint_rows_and_their_gradient_read_and_place_rows_without_scattering():
     """`angular_rows` and `point_gaps` gather each joint's two bodies and place each group's rows
     among the joints through `indexing`, so neither they nor their gradient (in the poses and in the
@@ -456,6 +460,7 @@ def test_the_tree_solves_joint_rows_and_their_gradient_read_and_place_rows_witho
         assert "scatter" not in text, [line for line in text.splitlines() if "scatter" in line][:3]
 
 
+@pytest.mark.slow
 def test_tree_solve_steps_a_pendulum_with_heavy_rotors_as_converged_sweeps_do(float64):
     # Two links on hinges with armature 0.5 and 0.3 kg m^2 (50 and 30 x the links' own inertia):
     # one sweep and the direct solve land within 1e-8 of 512 sweeps, where 4 sweeps miss by 1.6e-5 m.
@@ -534,6 +539,7 @@ def test_tree_solve_keeps_the_resting_ant_at_rest_for_thirty_seconds():
     assert np.all(np.abs(height - 0.362) < 0.002)
 
 
+@pytest.mark.slow
 def test_tree_solve_closes_what_its_linearisation_leaves_of_the_landing_ants_joints():
     # Brax's ant dropped at its dt = 0.01, one substep and one sweep (the benchmark's dbd-tree-1):
     # at landing (step 29) the sweep's solve turns its legs 0.089 rad and the whole solve 0.088 rad
@@ -560,6 +566,7 @@ def _step_a_saved_ant(name, substeps=1, saved_control=True):
     return model, state, _step(model, state, control)
 
 
+@pytest.mark.slow
 def test_tree_solve_takes_its_second_solve_where_the_first_was_when_landing_feet_let_go():
     # Brax's ant under random controls (`benchmarks/random_controls.py --model ant`, copy 13 at 607c410, the
     # state after step 25, just after its feet touched down; session 32): the whole solve's
@@ -573,6 +580,7 @@ def test_tree_solve_takes_its_second_solve_where_the_first_was_when_landing_feet
     assert gap < 0.05e-3, gap
 
 
+@pytest.mark.slow
 def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along_its_slip():
     # The same ant two steps later (session 32): in the whole solve two feet let go and `settle`
     # turns a third to sliding, its friction along where the first solve's sticking friction
@@ -625,6 +633,7 @@ def test_tree_solve_gives_way_where_a_sliding_foots_friction_would_push_it_along
         assert bodies < 1.25 * mujoco_bodies and fastest < 1.25 * mujoco_fastest
 
 
+@pytest.mark.slow
 def test_tree_solve_lands_an_ant_with_a_foot_in_the_floor_without_gaining_energy_at_four_substeps():
     # The state above, with zero control, stepped at 4 substeps (h = 2.5 ms). One foot begins it 47 mm
     # in the floor and the ant's energy is mostly its rotors' (159 J of 166 J). MuJoCo from the same

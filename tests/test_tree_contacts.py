@@ -129,6 +129,7 @@ def test_tree_solve_holds_a_leaning_ragdoll_on_its_feet_with_its_weight_on_them(
     assert np.ptp(pelvis[:, 2]) < 2e-3
 
 
+@pytest.mark.slow
 def test_gradients_through_sliding_and_sticking_contact_rows_match_finite_differences(float64):
     # Two 1 kg capsules fixed side by side (a joint tree), lying across a 35-degree slope (mu_s 0.5,
     # mu_d 0.4), pushed uphill at 0.8 m/s: they slide up, stop after 5 steps and start down, each
@@ -166,6 +167,7 @@ def test_gradients_through_sliding_and_sticking_contact_rows_match_finite_differ
     assert abs(gradient - numeric) < 1e-5 * max(1.0, abs(numeric))
 
 
+@pytest.mark.slow
 def test_tree_solve_keeps_a_quiet_standing_doll_quiet_when_one_foot_point_slides():
     # A state of RagdollStand-v0 at 2 substeps x 2 iterations with tree_solve (dt 1/60 s), met by a
     # PPO policy 179 steps into an episode, no push: every body slower than 0.22 m/s, both feet
