@@ -6,7 +6,9 @@ runs, after fusion, with `XLA_FLAGS=--xla_dump_to=DIR`; this script reads one su
 `*after_optimizations.txt` (plain or .gz) and counts its kernels per step: every fusion, custom call
 and copy, times the trip counts of the loops around it (XLA's `known_trip_count`; every branch of
 a conditional counted, so an upper bound where there are branches), then groups them by the
-innermost line of the source that made each (the HLO's stack frames). It needs no GPU: a
+innermost line of the source that made each (the HLO's stack frames), and by every function on
+that stack (`per_function`: a stage's kernels with those of what it calls, e.g. the solver's
+sweeps against the whole step). It needs no GPU: a
 dump made on one (`benchmarks/results/hlo/`, session 46's H200) can be read anywhere, and a CPU
 dump of the same program is read the same way (XLA:CPU fuses differently).
 
@@ -14,7 +16,8 @@ dump of the same program is read the same way (XLA:CPU fuses differently).
 
 --steps: the physics steps in the dumped program (kernel_trace.py traces a scan of 10).
 --within: each kernel is attributed to its innermost frame in the source files whose path holds
-this text (default "dbdjax/"); kernels with no such frame are counted as "(outside)".
+this text (default "dbdjax/"); kernels with no such frame are counted as "(outside)". For Brax's
+programs, --within brax/.
 """
 
 from __future__ import annotations
@@ -81,10 +84,9 @@ def computations(text: str) -> tuple[dict[str, list[tuple[str, str, str]]], str]
     return result, entry
 
 
-def source(rest: str, frames: dict, locations: dict, within: str) -> str:
-    """The innermost frame in a file whose path holds `within`, as "path:line function". The
-    frames of `math`'s primitive machinery (every written-out product binds there) are passed
-    over for the line that called the product."""
+def _frames_within(rest: str, frames: dict, locations: dict, within: str):
+    """The stack frames of an instruction in files whose path holds `within`, innermost first, as
+    "path:line function" (the frames of `math`'s primitive machinery passed over)."""
     match = re.search(r"stack_frame_id=(\d+)", rest)
     frame = int(match.group(1)) if match else 0
     seen = set()
@@ -93,9 +95,21 @@ def source(rest: str, frames: dict, locations: dict, within: str) -> str:
         location, parent = frames[frame]
         file, function, line = locations[location]
         if within in file and not function.startswith(PASSED_OVER):
-            return f"{file[file.index(within) :]}:{line} {function}"
+            yield f"{file[file.index(within) :]}:{line} {function}"
         frame = parent
-    return "(outside)"
+
+
+def source(rest: str, frames: dict, locations: dict, within: str) -> str:
+    """The innermost frame in a file whose path holds `within`, as "path:line function". The
+    frames of `math`'s primitive machinery (every written-out product binds there) are passed
+    over for the line that called the product."""
+    return next(_frames_within(rest, frames, locations, within), "(outside)")
+
+
+def functions(rest: str, frames: dict, locations: dict, within: str) -> set[str]:
+    """Every function on the instruction's stack in a file whose path holds `within`, as
+    "path function" (each once, however many of its lines the stack passes through)."""
+    return {re.sub(r":\d+ ", " ", where) for where in _frames_within(rest, frames, locations, within)}
 
 
 def count(path: Path, steps: int, within: str) -> dict:
@@ -103,6 +117,7 @@ def count(path: Path, steps: int, within: str) -> dict:
     frames, locations = tables(text)
     bodies, entry = computations(text)
     per_source: collections.Counter = collections.Counter()
+    per_function: collections.Counter = collections.Counter()
     per_kind: collections.Counter = collections.Counter()
     unknown_trips = []
 
@@ -122,6 +137,7 @@ def count(path: Path, steps: int, within: str) -> dict:
                 walk(re.search(r"to_apply=%(\S+?)[,\s]", rest).group(1), times)
             elif opcode in KERNELS:
                 per_source[source(rest, frames, locations, within)] += times
+                per_function.update(dict.fromkeys(functions(rest, frames, locations, within), times))
                 kind = re.search(r"kind=(k\w+)", rest)
                 per_kind[f"{opcode} {kind.group(1)}" if kind else opcode] += times
 
@@ -138,6 +154,8 @@ def count(path: Path, steps: int, within: str) -> dict:
         "per_file": {k: round(v / steps, 1) for k, v in per_file.most_common()},
         "per_kind": {k: round(v / steps, 1) for k, v in per_kind.most_common()},
         "per_source_line": {k: round(v / steps, 1) for k, v in per_source.most_common()},
+        # inclusive: a kernel counts for every function on its stack (a stage's share of the step)
+        "per_function": {k: round(v / steps, 1) for k, v in per_function.most_common()},
     }
 
 
@@ -154,6 +172,9 @@ def main() -> None:
         print(f"{result['hlo']}: {result['kernels_per_step']} kernels per step")
         print("  per file:", ", ".join(f"{k} {v}" for k, v in result["per_file"].items()))
         for where, n in list(result["per_source_line"].items())[: args.top]:
+            print(f"  {n:8.1f}  {where}")
+        print("  per function, with what it calls:")
+        for where, n in list(result["per_function"].items())[: args.top]:
             print(f"  {n:8.1f}  {where}")
     if args.out:
         args.out.write_text(json.dumps(results, indent=1) + "\n")
