@@ -239,30 +239,42 @@ def throughput(engine: Engine, batch: int, seconds: float, chunk: int = 10) -> d
     }
 
 
-def compile_times(engine: Engine, horizon: int = 100) -> dict:
-    """Seconds to lower and compile step, a `horizon`-step rollout and grad of its final height
-    with respect to the controls."""
+def compiled_programs(engine: Engine, horizon: int = 100) -> dict[str, tuple[float, float, Any]]:
+    """Lower and compile step, a `horizon`-step rollout and grad of its final height with respect
+    to the controls: {name: (seconds to trace and lower, seconds in XLA's compile, the compiled
+    program)}, or {name: (None, None, the error)} for a program that failed (Brax mjx's solver loop
+    has no reverse mode): one failing must not lose the others."""
     state = engine.init()
     controls = random_controls(engine, (horizon,))
     rollout = rollout_function(engine)
-
-    def compile_seconds(function, *args):
-        started = time.perf_counter()
-        jit(function).lower(*args).compile()
-        return round(time.perf_counter() - started, 2)
-
-    result: dict[str, Any] = {}
     programs = {
-        "step_s": (engine.step, state, controls[0]),
-        "rollout100_s": (rollout, state, controls),
-        "grad_rollout100_s": (jax.grad(lambda c: engine.height(rollout(state, c))), controls),
+        "step": (engine.step, state, controls[0]),
+        f"rollout{horizon}": (rollout, state, controls),
+        f"grad_rollout{horizon}": (jax.grad(lambda c: engine.height(rollout(state, c))), controls),
     }
-    for name, (function, *args) in programs.items():
-        try:  # one program failing (Brax mjx's solver loop has no reverse mode) must not lose the others
-            result[name] = compile_seconds(function, *args)
+    result: dict[str, tuple[Any, Any, Any]] = {}
+    for name, (function, *arguments) in programs.items():
+        try:
+            started = time.perf_counter()
+            lowered = jit(function).lower(*arguments)
+            traced = time.perf_counter()
+            compiled = lowered.compile()
+            result[name] = (traced - started, time.perf_counter() - traced, compiled)
         except Exception as error:  # noqa: BLE001
-            result[name] = None
-            result[name.removesuffix("_s") + "_error"] = f"{error!r:.300}"
+            result[name] = (None, None, error)
+    return result
+
+
+def compile_times(engine: Engine, horizon: int = 100) -> dict:
+    """Seconds to lower and compile step, a `horizon`-step rollout and grad of its final height
+    with respect to the controls (`compiled_programs`; NAME_s, or NAME_error for one that failed)."""
+    result: dict[str, Any] = {}
+    for name, (lowering, compiling, compiled) in compiled_programs(engine, horizon).items():
+        if lowering is None:
+            result[f"{name}_s"] = None
+            result[f"{name}_error"] = f"{compiled!r:.300}"
+        else:
+            result[f"{name}_s"] = round(lowering + compiling, 2)
     return result
 
 

@@ -1,5 +1,5 @@
 """Compile times of dbdjax checkouts side by side: the step, a 100-step rollout and grad of that
-rollout (`brax_comparison.compile_times`, compiled as the benchmark compiles), the grad's time
+rollout (`brax_comparison.compiled_programs`, compiled as the benchmark compiles), the grad's time
 split between JAX (tracing: the forward pass, linearize, remat and transpose, and lowering, all
 in Python) and XLA's compile, and the best and median of 7 runs of the compiled grad.
 
@@ -10,11 +10,15 @@ move 1.8-2.4x from run to run: compare within a run).
     .venv/bin/python benchmarks/grad_compile_paired.py --checkouts DIR . --rounds 1 \\
         --out benchmarks/results/grad_compile_paired_session68.json
 
-(The children run with PYTHONPATH emptied: each imports its checkout's dbdjax alone.) The grad
-is compiled twice in each child, by `compile_times` and again to time its two parts apart.
+(session 68's file, from the script before it compiled each program once; session 69's,
+`--checkouts . --rounds 1`, is the code of that session alone).
 
-DIR: an earlier commit's tree (`git archive <commit> | tar -x -C DIR`, its benchmarks/ and
-tests/assets/ included).
+(The children run with PYTHONPATH emptied: each imports its checkout's dbdjax alone, and this
+script's brax_comparison.py, the same harness for all.) Each program is compiled once
+(`brax_comparison.compiled_programs`) and the grad run as compiled there.
+
+DIR: an earlier commit's tree (`git archive <commit> | tar -x -C DIR`, its tests/assets/
+included).
 """
 
 from __future__ import annotations
@@ -29,8 +33,9 @@ from pathlib import Path
 
 
 def measure(root: Path, model: str, solver: str) -> dict:
-    """In this process: the compile times and grad runs of `root`'s dbdjax on `model`."""
-    sys.path[:0] = [str(root), str(root / "benchmarks")]
+    """In this process: the compile times and grad runs of `root`'s dbdjax on `model`, measured by
+    this script's brax_comparison.py (the same harness for every checkout)."""
+    sys.path[:0] = [str(root), str(Path(__file__).parent)]  # the checkout's dbdjax, this harness
     import brax_comparison
     import jax
     import numpy as np
@@ -40,25 +45,24 @@ def measure(root: Path, model: str, solver: str) -> dict:
     if not Path(dbdjax.__file__).resolve().is_relative_to(root.resolve()):
         raise RuntimeError(f"dbdjax imported from {dbdjax.__file__}, not from {root}")
     engine = brax_comparison.dbdjax_engine(root / "tests" / "assets" / f"{model}.xml", solver)
-    result = brax_comparison.compile_times(engine)
-    state, controls = engine.init(), brax_comparison.random_controls(engine, (100,))
-    rollout = brax_comparison.rollout_function(engine)
-    grad = brax_comparison.jit(jax.grad(lambda c: engine.height(rollout(state, c))))
-    started = time.perf_counter()
-    lowered = grad.lower(controls)
-    traced = time.perf_counter()
-    compiled = lowered.compile()
-    done = time.perf_counter()
-    jax.block_until_ready(compiled(controls))  # warm
+    programs = brax_comparison.compiled_programs(engine)
+    result = {}
+    for name, (lowering, compiling, compiled) in programs.items():
+        if lowering is None:
+            raise RuntimeError(f"{name} failed to compile: {compiled!r}")
+        result[f"{name}_s"] = round(lowering + compiling, 2)
+    lowering, compiling, grad = programs["grad_rollout100"]
+    controls = brax_comparison.random_controls(engine, (100,))  # the controls it was compiled for
+    jax.block_until_ready(grad(controls))  # warm
     runs = []
     for _ in range(7):
         start = time.perf_counter()
-        jax.block_until_ready(compiled(controls))
+        jax.block_until_ready(grad(controls))
         runs.append(time.perf_counter() - start)
     return {
         **result,
-        "grad_trace_and_lower_s": round(traced - started, 2),
-        "grad_xla_compile_s": round(done - traced, 2),
+        "grad_trace_and_lower_s": round(lowering, 2),
+        "grad_xla_compile_s": round(compiling, 2),
         "grad_run_best_s": round(min(runs), 3),
         "grad_run_median_s": round(float(np.median(runs)), 3),
     }
