@@ -1,6 +1,7 @@
 """Which cases of a parametrized test `make test` (CI) runs: the rest are marked slow and run with
 `make test-slow`. Session 69 found the suite taking 63 minutes on this 2-core machine against the
-20 or so it should; the cases left in CI keep each behaviour covered by one or two of them."""
+20 or so it should, and left one or two cases of each parametrized family in CI (whole tests marked
+slow then are listed in its closing note and named in the README's `make test` paragraph)."""
 
 import pytest
 
