@@ -22,11 +22,16 @@ GRAVITY = 9.81
 ASSETS = Path(__file__).parent / "assets"
 
 
+# The model an argument of one program, not its constant: cases of one scene share a compile
+# (tests/test_contacts.py, session 69).
+_ROLLOUT = jax.jit(dbd.rollout, static_argnames="steps")
+
+
 def rollout(model, steps, state=None, controls=None):
     state = dbd.init(model) if state is None else state
     if controls is None:
-        return jax.jit(lambda s: dbd.rollout(model, s, steps=steps))(state)
-    return jax.jit(dbd.rollout)(model, state, jnp.broadcast_to(jnp.asarray(controls), (steps, model.num_controls)))
+        return _ROLLOUT(model, state, steps=steps)
+    return _ROLLOUT(model, state, jnp.broadcast_to(jnp.asarray(controls), (steps, model.num_controls)))
 
 
 def upward_crossing_times(x, dt):
