@@ -86,7 +86,7 @@ def computations(text: str) -> tuple[dict[str, list[tuple[str, str, str]]], str]
 
 def _frames_within(rest: str, frames: dict, locations: dict, within: str):
     """The stack frames of an instruction in files whose path holds `within`, innermost first, as
-    "path:line function" (the frames of `math`'s primitive machinery passed over)."""
+    (path from `within` on, line, function) (the frames of `math`'s primitive machinery passed over)."""
     match = re.search(r"stack_frame_id=(\d+)", rest)
     frame = int(match.group(1)) if match else 0
     seen = set()
@@ -95,7 +95,7 @@ def _frames_within(rest: str, frames: dict, locations: dict, within: str):
         location, parent = frames[frame]
         file, function, line = locations[location]
         if within in file and not function.startswith(PASSED_OVER):
-            yield f"{file[file.index(within) :]}:{line} {function}"
+            yield file[file.index(within) :], line, function
         frame = parent
 
 
@@ -103,13 +103,15 @@ def source(rest: str, frames: dict, locations: dict, within: str) -> str:
     """The innermost frame in a file whose path holds `within`, as "path:line function". The
     frames of `math`'s primitive machinery (every written-out product binds there) are passed
     over for the line that called the product."""
-    return next(_frames_within(rest, frames, locations, within), "(outside)")
+    for path, line, function in _frames_within(rest, frames, locations, within):
+        return f"{path}:{line} {function}"
+    return "(outside)"
 
 
 def functions(rest: str, frames: dict, locations: dict, within: str) -> set[str]:
     """Every function on the instruction's stack in a file whose path holds `within`, as
     "path function" (each once, however many of its lines the stack passes through)."""
-    return {re.sub(r":\d+ ", " ", where) for where in _frames_within(rest, frames, locations, within)}
+    return {f"{path} {function}" for path, _, function in _frames_within(rest, frames, locations, within)}
 
 
 def count(path: Path, steps: int, within: str) -> dict:

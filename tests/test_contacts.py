@@ -17,17 +17,6 @@ from dbdjax import collision
 GRAVITY = 9.81
 
 
-# The model an argument, not a constant of the program: the cases of one scene (angles, frictions,
-# speeds) share one compile (session 69: four box-on-incline cases 17.9 s instead of 54.3 s, the
-# same results to the bit).
-_ROLLOUT = jax.jit(dbd.rollout, static_argnames="steps")
-
-
-def _rollout(model, steps, state=None):
-    state = dbd.init(model) if state is None else state
-    return _ROLLOUT(model, state, steps=steps)
-
-
 def _sphere_on_plane(height, restitution=0.0, substeps=1, iterations=8, **finalize):
     b = dbd.ModelBuilder()
     ball = b.add_body(pos=(0, 0, height))
@@ -37,7 +26,7 @@ def _sphere_on_plane(height, restitution=0.0, substeps=1, iterations=8, **finali
 
 
 def test_sphere_dropped_on_the_plane_rests_at_its_radius():
-    final, _ = _rollout(_sphere_on_plane(1.0), 180)
+    final, _ = scenes.rollout(_sphere_on_plane(1.0), 180)
     assert abs(float(final.pos[0, 2]) - 0.1) < 1e-3
     assert float(jnp.linalg.norm(final.vel[0])) < 1e-3
 
@@ -47,7 +36,7 @@ def test_box_dropped_tilted_lands_flat():
     box = b.add_body(pos=(0, 0, 0.5), quat=(math.cos(0.15), math.sin(0.15), 0, 0))
     b.add_box(box, (0.1, 0.1, 0.1))
     b.add_plane()
-    final, _ = _rollout(b.finalize(dt=1 / 60, substeps=4, iterations=8), 180)
+    final, _ = scenes.rollout(b.finalize(dt=1 / 60, substeps=4, iterations=8), 180)
     assert abs(float(final.pos[0, 2]) - 0.1) < 1e-3
     axes = np.asarray(dbd.math.quat_to_matrix(final.quat[0]))
     assert np.max(np.abs(axes[2])) > 1.0 - 1e-5  # one body axis is vertical: a face is down
@@ -55,7 +44,7 @@ def test_box_dropped_tilted_lands_flat():
 
 def test_ball_with_restitution_0_8_bounces_to_0_64_of_its_drop_height():
     model = _sphere_on_plane(1.1, restitution=0.8, substeps=4)
-    _, trajectory = _rollout(model, 200)
+    _, trajectory = scenes.rollout(model, 200)
     height = np.asarray(trajectory.pos[:, 0, 2]) - 0.1
     first_rise = int(np.argmax(np.diff(height) > 0))
     peak = height[first_rise:].max()
@@ -70,7 +59,7 @@ def _box_on_incline(angle_degrees, friction, dynamic_friction=None):
 def test_box_on_incline_below_the_friction_angle_stays_put(angle, static, dynamic):
     assert math.tan(math.radians(angle)) < static  # tan 25 = 0.466: static friction holds, dynamic would not
     model, start = _box_on_incline(angle, static, dynamic)
-    final, _ = _rollout(model, 120)
+    final, _ = scenes.rollout(model, 120)
     assert float(jnp.linalg.norm(final.pos[0] - start)) < 0.01
 
 
@@ -79,7 +68,7 @@ def test_box_on_incline_below_the_friction_angle_stays_put(angle, static, dynami
 )
 def test_box_on_incline_above_the_friction_angle_slides_at_g_sin_minus_mu_d_cos(angle, static, dynamic):
     model, start = _box_on_incline(angle, static, dynamic)
-    _, trajectory = _rollout(model, 120)
+    _, trajectory = scenes.rollout(model, 120)
     travelled = np.linalg.norm(np.asarray(trajectory.pos[:, 0]) - start, axis=1)
     time = np.arange(1, 121) / 60
     acceleration = 2.0 * np.polyfit(time, travelled, 2)[0]
@@ -99,7 +88,7 @@ def _boxes(positions, iterations=16):
 @pytest.mark.slow
 def test_stack_of_five_boxes_stands_for_five_seconds():
     start = np.array([(0.0, 0.0, 0.1 + 0.2 * i) for i in range(5)])
-    final, trajectory = _rollout(_boxes(start), 300)
+    final, trajectory = scenes.rollout(_boxes(start), 300)
     drift = np.linalg.norm(np.asarray(trajectory.pos) - start, axis=2)
     assert drift[:, 4].max() < 0.01
     assert bool(dbd.is_finite(final))
@@ -108,7 +97,7 @@ def test_stack_of_five_boxes_stands_for_five_seconds():
 @pytest.mark.slow
 def test_pyramid_of_ten_boxes_does_not_collapse():
     start = np.array([((k - (3 - row) / 2) * 0.21, 0.0, 0.1 + 0.2 * row) for row in range(4) for k in range(4 - row)])
-    _, trajectory = _rollout(_boxes(start), 300)
+    _, trajectory = scenes.rollout(_boxes(start), 300)
     drift = np.linalg.norm(np.asarray(trajectory.pos) - start, axis=2)
     assert drift.max() < 0.01
 
@@ -122,7 +111,7 @@ def test_capsule_resting_across_two_capsules_sinks_less_than_5_mm():
     top = b.add_body(pos=(0, 0, 0.15), quat=along_y)
     b.add_capsule(top, 0.05, 0.3)
     b.add_plane()
-    final, trajectory = _rollout(b.finalize(dt=1 / 60, substeps=1, iterations=16), 120)
+    final, trajectory = scenes.rollout(b.finalize(dt=1 / 60, substeps=1, iterations=16), 120)
     sink = 0.15 - np.asarray(trajectory.pos[:, top, 2])
     assert sink.max() < 0.005
     assert bool(dbd.is_finite(final))
@@ -197,7 +186,7 @@ def test_contact_compliance_makes_a_spring_of_stiffness_one_over_compliance():
     """With compliance alpha the resting sphere sinks m g alpha (a spring, DBD (47)-(52))."""
     compliance = 2e-5
     model = _sphere_on_plane(0.1, contact_compliance=compliance, iterations=16)
-    final, _ = _rollout(model, 240)
+    final, _ = scenes.rollout(model, 240)
     expected_sink = float(model.bodies.mass[0]) * GRAVITY * compliance
     sink = 0.1 - float(final.pos[0, 2])
     assert abs(sink - expected_sink) < 0.02 * expected_sink
@@ -301,7 +290,7 @@ def test_box_sunk_in_the_floor_comes_out_at_the_depenetration_speed_without_a_ki
     # that speed back: the box rises 4 h speed a step and stops at the surface. With the whole
     # 5 cm at once and a pass that took none of it back it left at 11.9 m/s (session 34, measured).
     model = _box_sunk_in_the_floor(speed)
-    _, trajectory = _rollout(model, 30)
+    _, trajectory = scenes.rollout(model, 30)
     height = np.asarray(trajectory.pos[:, 0, 2])
     np.testing.assert_allclose(height[0] - 0.05, speed / 60, atol=1e-4)
     steps_out = int(np.ceil(0.05 / (speed / 60)))
@@ -310,7 +299,7 @@ def test_box_sunk_in_the_floor_comes_out_at_the_depenetration_speed_without_a_ki
 
 
 def test_depenetration_speed_inf_pushes_a_sunk_box_out_in_one_substep():
-    _, trajectory = _rollout(_box_sunk_in_the_floor(float("inf")), 5)
+    _, trajectory = scenes.rollout(_box_sunk_in_the_floor(float("inf")), 5)
     np.testing.assert_allclose(np.asarray(trajectory.pos[:, 0, 2]), 0.1, atol=1e-4)
     assert float(jnp.max(jnp.abs(trajectory.vel))) < 1e-3
 
@@ -334,7 +323,7 @@ def test_a_resting_body_dragged_down_by_its_joint_stays_on_the_floor():
     b.add_ball_joint(ball, heavy, anchor=(0, 0, 0.1))
     b.add_plane()
     model = b.finalize(dt=1 / 60, substeps=1, iterations=8)
-    _, trajectory = _rollout(model, 10)
+    _, trajectory = scenes.rollout(model, 10)
     lowest = np.asarray(trajectory.pos[:, ball, 2]) - 0.05
     gaps = np.asarray(jax.vmap(lambda s: dbd.diagnostics.joint_gaps(model, s)[0])(trajectory))
     assert lowest.min() > -1e-3

@@ -22,18 +22,6 @@ GRAVITY = 9.81
 ASSETS = Path(__file__).parent / "assets"
 
 
-# The model an argument of one program, not its constant: cases of one scene share a compile
-# (tests/test_contacts.py, session 69).
-_ROLLOUT = jax.jit(dbd.rollout, static_argnames="steps")
-
-
-def rollout(model, steps, state=None, controls=None):
-    state = dbd.init(model) if state is None else state
-    if controls is None:
-        return _ROLLOUT(model, state, steps=steps)
-    return _ROLLOUT(model, state, jnp.broadcast_to(jnp.asarray(controls), (steps, model.num_controls)))
-
-
 def upward_crossing_times(x, dt):
     index = np.where((x[:-1] < 0) & (x[1:] >= 0))[0]
     return (index + 1 + (-x[index]) / (x[index + 1] - x[index])) * dt
@@ -55,7 +43,7 @@ def exact_period(length, radius, amplitude):
 def test_pendulum_period_matches_the_exact_period(joint, amplitude):
     length, radius, dt = 1.0, 0.1, 1 / 60
     model = scenes.pendulum(joint, length, amplitude, radius, dt=dt, iterations=8, solver="impulse")
-    _, trajectory = rollout(model, int(12 / dt))
+    _, trajectory = scenes.rollout(model, int(12 / dt))
     measured = np.mean(np.diff(upward_crossing_times(np.asarray(trajectory.pos[:, 0, 0]), dt)))
     expected = exact_period(length, radius, amplitude)
     print(f"\n{joint} pendulum, amplitude {amplitude}: period {measured:.5f} s, exact {expected:.5f} s")
@@ -72,7 +60,7 @@ def test_baumgarte_bias_removes_the_fraction_beta_of_a_joint_gap_per_substep():
     model = b.finalize(dt=1 / 60, substeps=2, iterations=1, solver="impulse")
     joints = dataclasses.replace(model.joints, local_anchor_b=jnp.zeros((1, 3)))
     model = dataclasses.replace(model, joints=joints)
-    _, trajectory = rollout(model, 10)
+    _, trajectory = scenes.rollout(model, 10)
     gaps = np.asarray(diagnostics.joint_gaps(model, trajectory))[:, 0]
     np.testing.assert_allclose(gaps, 0.1 * (1 - beta) ** (2 * np.arange(1, 11)), rtol=1e-4)
 
@@ -88,7 +76,7 @@ def door(limits=None, spin=0.0, **finalize):
 def test_hinge_angle_limits_hold_and_axes_stay_aligned():
     lower, upper = -0.4, 0.6
     model = door(limits=(lower, upper), spin=3.0)
-    _, trajectory = rollout(model, 240)
+    _, trajectory = scenes.rollout(model, 240)
     relative = dbd.math.quat_multiply(trajectory.quat[:, 0], dbd.math.quat_conjugate(model.joints.rest_rotation[0]))
     angle = np.asarray(dbd.math.quat_twist_angle(relative, jnp.array([0.0, 1.0, 0.0])))
     assert angle.max() > upper - 0.05, "the kick should reach the upper limit"
@@ -102,7 +90,7 @@ def test_slider_moves_only_along_its_axis_and_stops_at_its_limits():
     b = dbd.ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
     carriage = b.add_body(pos=(0, 0, 0), mass=1.0, inertia=(0.01, 0.02, 0.03), vel=(1.0, 2.0, 0.5), ang_vel=(1, 2, 3))
     b.add_slider_joint(dbd.WORLD, carriage, anchor=(0, 0, 0), axis=axis, limits=(-0.3, 0.2))
-    _, trajectory = rollout(b.finalize(dt=1 / 60, substeps=2, iterations=8, solver="impulse"), 180)
+    _, trajectory = scenes.rollout(b.finalize(dt=1 / 60, substeps=2, iterations=8, solver="impulse"), 180)
     pos = np.asarray(trajectory.pos[:, 0])
     travel = pos @ axis
     assert np.abs(pos - travel[:, None] * axis).max() < 1e-3
@@ -117,7 +105,7 @@ def test_hinge_motor_reaches_its_speed_without_exceeding_its_torque():
     wheel = b.add_body(pos=(0, 0, 0), mass=1.0, inertia=(inertia, inertia, 0.3))
     b.add_motor(b.add_hinge_joint(dbd.WORLD, wheel, anchor=(0, 0, 0), axis=(1, 0, 0)), max_force=max_torque)
     model = b.finalize(dt=1 / 120, iterations=4, solver="impulse")
-    _, trajectory = rollout(model, 240, controls=[speed])
+    _, trajectory = scenes.rollout(model, 240, controls=[speed])
     spin = np.asarray(trajectory.ang_vel[:, 0, 0])
     time = model.dt * np.arange(1, len(spin) + 1)
     assert np.all(spin <= max_torque / inertia * time * (1 + 1e-3) + 1e-9)  # SI (126): |lambda| <= F_max h
@@ -136,7 +124,7 @@ def test_drive_too_weak_for_its_load_sags_by_the_predicted_angle():
     hinge = b.add_hinge_joint(dbd.WORLD, arm, anchor=(0, 0, 0), axis=(0, -1, 0))
     b.add_drive(hinge, stiffness=1e4, damping=0.0, max_torque=tau)
     model = b.finalize(dt=1 / 240, substeps=2, iterations=8, solver="impulse")
-    _, trajectory = rollout(model, 360, controls=[0.0])
+    _, trajectory = scenes.rollout(model, 360, controls=[0.0])
     sag = -np.asarray(dbd.math.quat_twist_angle(trajectory.quat[:, 0], jnp.array([0.0, -1.0, 0.0])))
     first_swing = sag[: np.argmax(np.diff(sag) < 0) + 1]
     low, high = 0.1, np.pi
@@ -153,7 +141,7 @@ def test_spring_oscillates_at_its_natural_period():
     block = b.add_body(pos=(0.1, 0, 0), mass=1.0, inertia=(0.01, 0.01, 0.01))
     b.add_spring(dbd.WORLD, block, (0, 0, 0), (0.1, 0, 0), stiffness=100.0, rest_length=0.2)
     model = b.finalize(dt=1 / 240, solver="impulse")
-    _, trajectory = rollout(model, 960)
+    _, trajectory = scenes.rollout(model, 960)
     measured = np.mean(np.diff(upward_crossing_times(np.asarray(trajectory.pos[:, 0, 0]) - 0.2, model.dt)))
     assert abs(measured - 2 * np.pi / 10.0) / (2 * np.pi / 10.0) < 0.01
 
@@ -164,7 +152,7 @@ def test_linear_drag_user_force_decays_the_speed_exponentially():
     body = b.add_body(pos=(0, 0, 0), mass=2.0, inertia=(0.1, 0.1, 0.1), vel=(1.0, 0, 0))
     b.add_force([body], lambda pos, quat, vel, ang_vel, c: (-c * vel, jnp.zeros_like(vel)), params=jnp.array(0.5))
     model = b.finalize(dt=1 / 240, solver="impulse")
-    final, _ = rollout(model, 480)
+    final, _ = scenes.rollout(model, 480)
     np.testing.assert_allclose(float(final.vel[0, 0]), math.exp(-0.5 * 2.0 / 2.0), rtol=2e-3)
 
 
@@ -175,7 +163,7 @@ def test_ball_with_restitution_0_8_bounces_to_0_64_of_its_drop_height():
     b = dbd.ModelBuilder()
     b.add_sphere(b.add_body(pos=(0, 0, 1.1)), 0.1, restitution=0.8)
     b.add_plane(restitution=0.8)
-    _, trajectory = rollout(b.finalize(dt=1 / 60, substeps=4, iterations=8, solver="impulse"), 200)
+    _, trajectory = scenes.rollout(b.finalize(dt=1 / 60, substeps=4, iterations=8, solver="impulse"), 200)
     height = np.asarray(trajectory.pos[:, 0, 2]) - 0.1
     peak = height[int(np.argmax(np.diff(height) > 0)) :].max()
     print(f"\nbounce: peak {peak:.4f} m (expected 0.64)")
@@ -186,7 +174,7 @@ def test_ball_with_restitution_0_8_bounces_to_0_64_of_its_drop_height():
 def test_box_on_incline_below_the_friction_angle_stays_put(angle, static, dynamic):
     model, start = scenes.box_on_incline(angle, static, dynamic, dt=1 / 60, substeps=4, iterations=8,
                                          solver="impulse")  # fmt: skip
-    final, _ = rollout(model, 120)
+    final, _ = scenes.rollout(model, 120)
     assert float(jnp.linalg.norm(final.pos[0] - start)) < 0.01
 
 
@@ -194,7 +182,7 @@ def test_box_on_incline_below_the_friction_angle_stays_put(angle, static, dynami
 def test_box_on_incline_above_the_friction_angle_slides_at_g_sin_minus_mu_d_cos(angle, static, dynamic):
     model, start = scenes.box_on_incline(angle, static, dynamic, dt=1 / 60, substeps=4, iterations=8,
                                          solver="impulse")  # fmt: skip
-    _, trajectory = rollout(model, 120)
+    _, trajectory = scenes.rollout(model, 120)
     travelled = np.linalg.norm(np.asarray(trajectory.pos[:, 0]) - start, axis=1)
     acceleration = 2.0 * np.polyfit(np.arange(1, 121) / 60, travelled, 2)[0]
     mu_d = static if dynamic is None else dynamic
@@ -211,7 +199,7 @@ def test_resting_box_carries_its_weight_in_the_accumulated_normal_impulses():
     b.add_box(box, (0.1, 0.1, 0.1))
     b.add_plane()
     model = b.finalize(dt=1 / 60, iterations=8, solver="impulse")
-    final, _ = rollout(model, 60)
+    final, _ = scenes.rollout(model, 60)
     normal = final.impulses[-1].reshape(8, 4)[:, 0]  # the box-plane group: 8 corners x (n, friction (3,))
     np.testing.assert_allclose(float(jnp.sum(normal)), 3.0 * GRAVITY / 60, rtol=1e-3)
     assert abs(float(final.pos[0, 2]) - 0.1) < 1e-3
@@ -240,7 +228,7 @@ def test_ragdoll_dropped_at_dt_one_thirtieth_joint_gaps_of_both_solvers():
     gaps = {}
     for solver in ("dbd", "impulse"):
         model = scenes.ragdoll(dt=1 / 30, iterations=8, solver=solver)
-        final, trajectory = rollout(model, 60)
+        final, trajectory = scenes.rollout(model, 60)
         assert bool(dbd.is_finite(final))
         gap = np.asarray(diagnostics.joint_gaps(model, trajectory))
         gaps[solver] = (gap.max(), gap[-15:].max())
@@ -345,7 +333,7 @@ def test_rope_keeps_its_length_and_tetrahedron_its_volume():
                    for c, v in zip(corners, kicks, strict=True)]  # fmt: skip
     b.add_volume(tetrahedron)
     model = b.finalize(dt=1 / 60, iterations=8, solver="impulse")
-    _, trajectory = rollout(model, 120)
+    _, trajectory = scenes.rollout(model, 120)
     pos = np.asarray(trajectory.pos)
     length = np.sum(np.linalg.norm(np.diff(pos[:, :10], axis=1), axis=-1), axis=-1)
     assert np.abs(length / 0.9 - 1.0).max() < 0.01
@@ -393,7 +381,7 @@ def swinging_euler_joint(request):
         b.add_gimbal_joint(dbd.WORLD, plate, anchor=(0, 0, 0), axes=[(1, 0, 0), (0, 0, 1), (0, 1, 0)],
                            limits=[limits[0], limits[1], None])  # fmt: skip
     model = b.finalize(dt=1 / 60, substeps=2, iterations=8, solver="impulse")
-    _, trajectory = rollout(model, 120)
+    _, trajectory = scenes.rollout(model, 120)
     return kind, model, trajectory, scenes.hinge_angles(model, trajectory.quat)[:, 0], limits, swing
 
 
@@ -450,7 +438,7 @@ def test_armature_dof_spins_up_at_torque_over_body_plus_rotor_inertia(float64, k
         b.add_armature(joint, armature)
         b.add_torque(joint, gear=1.0, dof=dof)
     model = b.finalize(dt=1 / 60, iterations=4, solver="impulse")
-    _, trajectory = rollout(model, 30, controls=[tau])
+    _, trajectory = scenes.rollout(model, 30, controls=[tau])
     speed = np.asarray(trajectory.vel[:, 0, 0] if kind == "slider" else trajectory.ang_vel[:, 0, dof])
     rate = speed[-1] / (30 * model.dt)
     expected = tau / (inertia + rotor)
@@ -477,7 +465,7 @@ def test_pendulum_with_armature_swings_at_the_period_of_body_plus_rotor_inertia(
         pivot = b.add_hinge_joint(dbd.WORLD, bob, anchor=(0, 0, 0), axis=(0, 1, 0))
     b.add_armature(pivot, rotor)
     model = b.finalize(dt=dt, iterations=8, solver=solver)
-    _, trajectory = rollout(model, int(8 / dt))
+    _, trajectory = scenes.rollout(model, int(8 / dt))
     measured = np.mean(np.diff(upward_crossing_times(np.asarray(trajectory.pos[:, 0, 0]), dt)))
     expected = exact_period(length, radius, amplitude) * math.sqrt(1 + rotor / (0.4 * radius**2 + length**2))
     print(f"\n{joint} pendulum with armature {rotor} ({solver}): period {measured:.5f} s, expected {expected:.5f} s")
