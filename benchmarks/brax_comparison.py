@@ -76,6 +76,7 @@ DBDJAX_VARIANTS = {
     "impulse": {"solver": "impulse"},
     "dbd-tree": {"tree_solve": True},
     "dbd-tree-1": {"tree_solve": True, "iterations": 1},  # one sweep, then the direct solves
+    "dbd-1": {"iterations": 1},  # DBD at one sweep: what a Gauss-Seidel sweep costs beside Brax's whole step
     "jacobi-tree": {"jacobi": True, "tree_solve": True},
     "dbd-trailing": {},  # DBD batched by dbd.vmap (the batch the trailing axis) instead of jax.vmap
     "dbd-points": {"point_sweeps": 2},  # DBD, then 2 sweeps of the joints' points alone
@@ -86,9 +87,10 @@ def dbdjax_engine(xml: Path, solver: str, substeps: int = 1) -> Engine:
     """solver: a key of DBDJAX_VARIANTS: "dbd", "impulse", "dbd-tree" (DBD with `tree_solve`: the
     direct solves of the joint tree, solvers/tree.py), "dbd-tree-1" (the same with one sweep instead
     of DBD_ITERATIONS), "jacobi-tree" (with Jacobi sweeps in place of the coloured Gauss-Seidel
-    ones), "dbd-trailing" (DBD, a batch mapped by `dbd.vmap` instead of `jax.vmap`) or "dbd-points"
-    (DBD with 2 sweeps of the joints' points after its sweeps, `finalize(point_sweeps=2)`). substeps:
-    per physics step (1 here; `random_controls.py --substeps` tries more)."""
+    ones), "dbd-1" (DBD at one sweep), "dbd-trailing" (DBD, a batch mapped by `dbd.vmap` instead of
+    `jax.vmap`) or "dbd-points" (DBD with 2 sweeps of the joints' points after its sweeps,
+    `finalize(point_sweeps=2)`). substeps: per physics step (1 here; `random_controls.py --substeps`
+    tries more)."""
     if solver not in DBDJAX_VARIANTS:
         raise ValueError(f"unknown dbdjax engine {solver!r}: one of {sorted(DBDJAX_VARIANTS)}")
     kwargs = {"substeps": substeps, "iterations": DBD_ITERATIONS, **DBDJAX_VARIANTS[solver]}

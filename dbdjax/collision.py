@@ -149,14 +149,16 @@ def _normalize_or(v: jnp.ndarray, fallback: jnp.ndarray) -> tuple[jnp.ndarray, j
 
 
 def _first_max(v: jnp.ndarray) -> jnp.ndarray:
-    """One-hot bool (n,) of the first largest entry of v (n,) (a deterministic argmax).
+    """One-hot bool (n,) of the first largest entry of v (n,): exactly one entry is true.
 
-    Built from a max and comparisons: argmax is a variadic reduce that compiles slowly on CPU, and
-    indexing with its result is a gather whose transpose (under grad) is a scatter.
+    The index comes from one argmax and is compared with each position, never used to index (a
+    gather, whose transpose under grad is a scatter). Not `v >= max(v)`: XLA may compute v once
+    for the max and again, fused into the comparison, rounded differently, and then no entry
+    passes. It did, compiled without the fusion emitters at LLVM -O0: a capsule's deepest point
+    in a box came back as its centre, 0.11 m too shallow (tests/test_collision.py's deep
+    penetration cases, session 70).
     """
-    is_max = v >= jnp.max(v)
-    earlier = np.tri(v.shape[0], k=-1, dtype=bool)  # earlier[i, j]: j < i
-    return is_max & ~jnp.any(earlier & is_max[None, :], axis=1)
+    return jnp.arange(v.shape[0]) == jnp.argmax(v)
 
 
 def _first_max3(v: jnp.ndarray) -> jnp.ndarray:

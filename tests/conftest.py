@@ -1,10 +1,32 @@
+import os
 import sys
 from pathlib import Path
 
-import jax
-import pytest
+# The suite's time is mostly XLA compiling its programs (about 82% of it, session 69), and its
+# checks are of numbers, not speed. So every program of the test processes is compiled without
+# XLA:CPU's fusion emitters (as dbdjax's own programs are: `dbd.compiler_options()`) and without
+# LLVM's optimisation passes (level 0 of 3): the same operations, rounded at most differently, and
+# the whole suite in 384 s instead of 994 (session 70). A test that compares two programs to the bit
+# takes `optimised_compile`. Set before JAX starts its backend, which reads XLA_FLAGS once;
+# subprocesses that a test starts with its own XLA_FLAGS keep theirs.
+QUICK_COMPILE = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
+os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {QUICK_COMPILE}".strip()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+from dbdjax import compiling  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
+
+
+@pytest.fixture
+def optimised_compile(monkeypatch):
+    """`dbd.jit`'s programs (the trainers', the envs') compiled with LLVM's optimisation passes, at
+    XLA's default level 3 as outside the suite, not at the suite's level 0: for a test that compares
+    two such programs to the bit, which holds only where XLA compiles their shared part alike."""
+    optimised = {**compiling._OPTIONS["cpu"], "xla_backend_optimization_level": 3}
+    monkeypatch.setitem(compiling._OPTIONS, "cpu", optimised)
 
 
 @pytest.fixture

@@ -34,7 +34,8 @@ def test_dbd_jit_compiles_another_program_that_computes_the_same_step(float64):
     state = dbd.init(model)
     control = jnp.linspace(-1.0, 1.0, model.num_controls)
     run = lambda s, c: dbd.rollout(model, s, jnp.broadcast_to(c, (20, model.num_controls)))[0]  # noqa: E731
-    default = jax.jit(run).lower(state, control).compile()
+    # XLA's default, named: the suite's processes compile without the fusion emitters (conftest.py)
+    default = jax.jit(run, compiler_options={"xla_cpu_use_fusion_emitters": True}).lower(state, control).compile()
     ours = dbd.jit(run).lower(state, control).compile()
     assert default.as_text() != ours.as_text()  # the options reached XLA
     expected_leaves, got_leaves = jax.tree.leaves(default(state, control)), jax.tree.leaves(ours(state, control))
@@ -55,10 +56,12 @@ def test_dbd_jit_decorates_with_and_without_arguments():
     assert float(raised(2.0, power=3)) == 8.0
 
 
-def test_envs_compile_with_dbdjax_options_unless_the_caller_drops_them():
+def test_envs_compile_with_dbdjax_options_unless_the_caller_overrides_them():
     quick = {"xla_backend_optimization_level": 0}
     env = gym.make("dbdjax/IKChainReach-v0", jit_options=quick).unwrapped
-    plain = gym.make("dbdjax/IKChainReach-v0", jit_options={**quick, "xla_cpu_use_fusion_emitters": None}).unwrapped
+    # XLA's default fusion emitters, named (None would drop dbdjax's option and leave the suite's
+    # process default, which conftest.py sets to ours)
+    plain = gym.make("dbdjax/IKChainReach-v0", jit_options={**quick, "xla_cpu_use_fusion_emitters": True}).unwrapped
     key = jax.random.PRNGKey(0)
     with_ours = env._reset.func.lower(env.func_env, key).compile().as_text()
     without = plain._reset.func.lower(plain.func_env, key).compile().as_text()

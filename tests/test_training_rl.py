@@ -458,7 +458,7 @@ def test_envs_stepped_under_dbd_vmap_train_as_under_jax_vmap(monkeypatch):
     assert [f.__name__ for f in mapped] == ["step", "reset"]  # only the trailing-batch run, its envs
 
 
-def test_the_kept_policy_is_the_moving_average_of_the_trained_ones_and_the_training_is_unchanged():
+def test_the_kept_policy_is_the_moving_average_of_the_trained_ones_and_the_training_is_unchanged(optimised_compile):
     """PPOConfig.policy_average: the exported policy is average <- d average + (1 - d) policy after
     every iteration, each statistics update absorbed into it as into the networks; the trained
     policy, and so the rollouts, are the same as without it; at d = 0 the trained policy is exported."""
