@@ -186,7 +186,9 @@ def test_dropped_ant_on_the_impulse_solver_gains_no_energy_at_one_or_four_subste
 
 @pytest.mark.slow
 @pytest.mark.parametrize("solver", ["dbd", "impulse"])
-def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced(float64, monkeypatch, solver):
+def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced(
+    float64, monkeypatch, optimised_compile, solver
+):
     """The rotor residuals and the rotor pass trace each kind of joint with its own rows
     (`solvers.dbd.rotor_kinds`: the humanoid's hinges, and its universal and gimbal joints); the
     rows a kind lacks are inactive, so traced with every row for every joint (on the same colours)
@@ -196,12 +198,12 @@ def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced
     assert [len(members) for members, _ in kinds] == [5, 5]  # universal and gimbal share their rows
     assert sorted(len({"rotor_hinge", "rotor_euler"} & rows) for _, rows in kinds) == [1, 1]  # a kind's own rotor rows
     controls = jnp.asarray(np.random.default_rng(3).uniform(-0.4, 0.4, (30, model.num_controls)))
-    _, by_kind = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
+    _, by_kind = dbd.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))  # optimised_compile's
     every_row = joint_rows.rows_in_use(model.structure)
     for name in ("project_rotor_momentum", "rotor_excess"):
         traced = getattr(joint_rows, name)
         monkeypatch.setattr(joint_rows, name, lambda *args, traced=traced: traced(*args[:-1], every_row))
-    _, all_rows = jax.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
+    _, all_rows = dbd.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
     assert bool(jnp.all(dbd.is_finite(by_kind)))
     assert float(jnp.max(jnp.abs(by_kind.ang_vel))) > 1.0, "the humanoid should really move"
     for ours, reference in zip(jax.tree.leaves(by_kind), jax.tree.leaves(all_rows), strict=True):
