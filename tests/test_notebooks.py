@@ -25,7 +25,7 @@ def test_notebook_is_stored_without_outputs(path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
-def test_notebook_runs_end_to_end(path, monkeypatch, tmp_path, optimised_compile):  # the kernel as a user's
+def test_notebook_runs_end_to_end(path, monkeypatch, tmp_path):
     nbclient = pytest.importorskip("nbclient")
     nbformat = pytest.importorskip("nbformat")
     monkeypatch.setenv("DBDJAX_QUICK", "1")

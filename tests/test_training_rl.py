@@ -297,7 +297,7 @@ def test_checkpoint_round_trips_and_the_loaded_policy_acts_the_same(stand, tmp_p
 
 
 @pytest.mark.slow
-def test_ppo_improves_the_return_on_ragdoll_stand(stand_full, optimised_compile):
+def test_ppo_improves_the_return_on_ragdoll_stand(stand_full):
     """Exploration on the ankles only (`PPOConfig.explored_actions`): noise of std 0.01 on every
     action entry shortens the home pose's training episodes by a third, and PPO trained on that
     policy made the deterministic one worse (docs/reinforcement_learning.md).
@@ -328,7 +328,7 @@ def test_ppo_improves_the_return_on_ragdoll_stand(stand_full, optimised_compile)
 
 
 @pytest.mark.slow
-def test_apg_improves_the_return_on_ragdoll_stand(stand_long, optimised_compile):
+def test_apg_improves_the_return_on_ragdoll_stand(stand_long):
     """Gradients through 64 env steps (2.1 s): at 8 (0.27 s) the gradient saw the shaping terms
     and not the falls, and training lowered the return (119.55 -> 67.27); at 32 it held it
     (+0.80 +- 2.31). docs/reinforcement_learning.md."""
