@@ -6,7 +6,7 @@ from pathlib import Path
 # checks are of numbers, not speed. So every program of the test processes is compiled without
 # XLA:CPU's fusion emitters (as dbdjax's own programs are: `dbd.compiler_options()`) and without
 # LLVM's optimisation passes (level 0 of 3): the same operations, rounded at most differently, and
-# the whole suite in 384 s instead of 994 (session 70). A test that compares two programs to the bit
+# `make test`'s tests in 423 s instead of 994 (session 70). A test that compares two programs to the bit
 # takes `optimised_compile`. Set before JAX starts its backend, which reads XLA_FLAGS once;
 # subprocesses that a test starts with its own XLA_FLAGS keep theirs.
 QUICK_COMPILE = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
