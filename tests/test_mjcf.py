@@ -198,7 +198,8 @@ def test_the_rotor_pass_kind_by_kind_moves_the_humanoid_as_with_every_row_traced
     assert [len(members) for members, _ in kinds] == [5, 5]  # universal and gimbal share their rows
     assert sorted(len({"rotor_hinge", "rotor_euler"} & rows) for _, rows in kinds) == [1, 1]  # a kind's own rotor rows
     controls = jnp.asarray(np.random.default_rng(3).uniform(-0.4, 0.4, (30, model.num_controls)))
-    _, by_kind = dbd.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))  # optimised_compile's
+    # dbd.jit, not jax.jit: its options are the ones optimised_compile raises to level 3
+    _, by_kind = dbd.jit(lambda s: dbd.rollout(model, s, controls))(dbd.init(model))
     every_row = joint_rows.rows_in_use(model.structure)
     for name in ("project_rotor_momentum", "rotor_excess"):
         traced = getattr(joint_rows, name)
